@@ -1,0 +1,8 @@
+"""jaxhead: subject-specific, differentiable finite-element head models for EIT."""
+
+from .mesh import TetMesh, orient_tets
+from .surface import Surface
+from .tissue import DEFAULT_SIGMA_S_M, TISSUE_NAMES, TISSUES, Tissue, default_sigma
+from .volume import LabelMap, Volume
+
+__version__ = "0.1.0"
