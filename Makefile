@@ -1,0 +1,33 @@
+# Two commands on a fresh machine (Python >= 3.11 and make): `make demo` and `make test`.
+# Each creates the virtual environment in .venv and installs jaxhead on first use.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.jaxhead-installed
+PYTEST_ARGS ?=
+
+.PHONY: demo test test-slow bench install clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/jaxhead run configs/demo.toml
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q -n 2 $(PYTEST_ARGS)
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow $(PYTEST_ARGS)
+
+bench: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python benchmarks/forward.py
+	$(BIN)/python benchmarks/mesh.py
+
+clean:
+	rm -rf runs .pytest_cache

@@ -1,0 +1,97 @@
+"""Command line: parse arguments, build the config, call the public functions. Nothing else."""
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+
+
+def _setup_runtime() -> None:
+    # Entry point: float64 for FEM (STYLE.md, convention 3); the library never flips this itself.
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def _cmd_run(args) -> int:
+    from .config import load_config
+    from .pipeline import run_pipeline
+
+    cfg = load_config(args.config)
+    if args.out:
+        import dataclasses
+
+        cfg = dataclasses.replace(cfg, out_dir=args.out)
+    results = run_pipeline(cfg, force=args.force, progress=lambda s: print(s, flush=True))
+    print(f"run folder: {cfg.run_dir.resolve()}")
+    for subject, stages in results.items():
+        print(f"  {subject}: {', '.join(stages)}")
+    return 0
+
+
+def _cmd_phantom(args) -> int:
+    from . import io
+    from .phantom import make_head
+
+    kw = {} if args.noise is None else {"noise": args.noise}
+    volume, labels = make_head(args.modality, voxel_mm=args.voxel_mm, seed=args.seed, **kw)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scan = out / f"phantom_{args.modality}_seed{args.seed}.nii.gz"
+    lab = out / f"phantom_{args.modality}_seed{args.seed}_labels.nii.gz"
+    io.save_volume(volume, scan)
+    io.save_labels(labels, lab)
+    print(f"wrote {scan}\nwrote {lab}")
+    return 0
+
+
+def _cmd_info(args) -> int:
+    from . import io
+
+    print(io.format_info(io.info(args.path)))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="jaxhead",
+        description="Subject-specific, differentiable finite-element head models for EIT.")
+    p.add_argument("-v", "--verbose", action="store_true", help="log at DEBUG level")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="run the stages of a TOML config into its run folder")
+    r.add_argument("config", help="TOML run config, e.g. configs/demo.toml")
+    r.add_argument("--force", action="store_true", help="rerun stages that are up to date")
+    r.add_argument("--out", help="run folder (overrides the config's out_dir)")
+    r.set_defaults(fn=_cmd_run)
+
+    ph = sub.add_parser("phantom", help="write a synthetic head scan and its labels as NIfTI")
+    ph.add_argument("--modality", choices=["mri", "ct"], default="mri")
+    ph.add_argument("--voxel-mm", type=float, default=1.0)
+    ph.add_argument("--seed", type=int, default=0)
+    ph.add_argument("--noise", type=float, default=None)
+    ph.add_argument("--out", default=".", help="output folder")
+    ph.set_defaults(fn=_cmd_phantom)
+
+    i = sub.add_parser("info", help="shape, voxel size, orientation, intensity range of a volume")
+    i.add_argument("path")
+    i.set_defaults(fn=_cmd_info)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    _setup_runtime()
+    try:
+        return args.fn(args)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"jaxhead: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,172 @@
+"""Run configuration: one frozen dataclass per stage, loaded from TOML.
+
+Stage configs live beside their stage (``LayerConfig`` in ``segment/layers.py`` ...); this module
+composes them into a :class:`RunConfig` and loads it from a TOML file, rejecting unknown keys with the
+closest valid key suggested.
+"""
+
+import dataclasses
+import difflib
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+Modality = Literal["mri", "ct"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class InputConfig:
+    """Where the subject comes from.
+
+    Arguments:
+        source: "phantom" builds synthetic heads (no files needed); "file" loads `path`.
+        modalities: with source="phantom", one subject per modality ("mri", "ct").
+        modality: with source="file", the scan's modality.
+        path: with source="file", a NIfTI/Analyze volume.
+        labels_path: optional label map (0..4) to use instead of segmenting.
+        voxel_mm: phantom voxel size, or the size to resample a loaded scan to (None keeps it).
+        seed: phantom subject seed.
+        noise: phantom noise level (MRI: fraction of white-matter intensity; CT: HU); None = default.
+    """
+
+    source: Literal["phantom", "file"] = "phantom"
+    modalities: tuple[Modality, ...] = ("mri", "ct")
+    modality: Modality = "mri"
+    path: str | None = None
+    labels_path: str | None = None
+    voxel_mm: float | None = 2.0
+    seed: int = 0
+    noise: float | None = None
+
+    def __post_init__(self):
+        if self.source == "file" and not self.path:
+            raise ValueError('[input] source = "file" needs `path` = "scan.nii.gz".')
+        if self.voxel_mm is not None and not self.voxel_mm > 0:
+            raise ValueError(f"[input] `voxel_mm` must be > 0, got {self.voxel_mm}.")
+        if self.source == "phantom" and not self.modalities:
+            raise ValueError('[input] `modalities` is empty; use e.g. ["mri", "ct"].')
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunConfig:
+    """A whole run: where to write, which stages, and each stage's config.
+
+    Arguments:
+        name: run name (used for the default output folder).
+        out_dir: the run folder; relative paths are relative to the current directory.
+        stages: the stages to run, in pipeline order (default: every stage available).
+    """
+
+    name: str = "run"
+    out_dir: str | None = None
+    stages: tuple[str, ...] | None = None
+    input: InputConfig = field(default_factory=InputConfig)
+
+    @property
+    def run_dir(self) -> Path:
+        return Path(self.out_dir if self.out_dir else f"runs/{self.name}")
+
+
+def _suggest(key: str, valid: list[str]) -> str:
+    close = difflib.get_close_matches(key, valid, n=1, cutoff=0.5)
+    return f" Did you mean `{close[0]}`?" if close else f" Valid keys: {', '.join(sorted(valid))}."
+
+
+def _convert(value: Any, tp: Any, where: str) -> Any:
+    """Convert a TOML value to the annotated type (dataclass, tuple, Literal, mapping, scalar)."""
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+        if not isinstance(value, dict):
+            raise ValueError(f"`{where}` must be a table, got {value!r}.")
+        return from_dict(tp, value, where)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _convert(value, arg, where)
+            except (ValueError, TypeError) as e:
+                errors.append(str(e))
+        raise ValueError(f"`{where}` = {value!r} does not fit {tp}: {'; '.join(errors)}")
+    if origin is Literal:
+        choices = typing.get_args(tp)
+        if value not in choices:
+            raise ValueError(f"`{where}` = {value!r}; choose one of {list(choices)}.")
+        return value
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"`{where}` must be a list, got {value!r}.")
+        args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise ValueError(f"`{where}` needs {len(args)} entries, got {len(value)}.")
+        return tuple(_convert(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(args, value)))
+    if origin in (dict, typing.Mapping) or tp in (dict,):
+        if not isinstance(value, dict):
+            raise ValueError(f"`{where}` must be a table, got {value!r}.")
+        kt, vt = (typing.get_args(tp) + (Any, Any))[:2]
+        return {_convert(k, kt, f"{where} key"): _convert(v, vt, f"{where}.{k}") for k, v in value.items()}
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"`{where}` must be a number, got {value!r}.")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"`{where}` must be an integer, got {value!r}.")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"`{where}` must be true or false, got {value!r}.")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ValueError(f"`{where}` must be a string, got {value!r}.")
+        return value
+    if isinstance(tp, type) and hasattr(tp, "parse"):  # e.g. Tissue keys given by name
+        return tp.parse(value)
+    return value
+
+
+def from_dict(cls: type, data: dict, where: str = "") -> Any:
+    """Build the frozen dataclass `cls` from a dict, rejecting unknown keys with a suggestion."""
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    kwargs = {}
+    for key, value in data.items():
+        name = f"{where}.{key}" if where else key
+        if key not in fields:
+            section = f"[{where}]" if where else "the top level"
+            raise ValueError(f"unknown key `{key}` in {section}.{_suggest(key, list(fields))}")
+        kwargs[key] = _convert(value, hints[key], name)
+    try:
+        return cls(**kwargs)
+    except TypeError as e:
+        raise ValueError(f"[{where or 'top level'}]: {e}") from None
+
+
+def _stage_config_types() -> dict[str, type]:
+    """Sections of the TOML file -> their stage config classes (the stages that exist)."""
+    return {f.name: f.type for f in dataclasses.fields(RunConfig) if dataclasses.is_dataclass(f.type)}
+
+
+def load_config(path: str | Path) -> RunConfig:
+    """Read a TOML run config. Unknown keys raise ValueError with the closest valid key."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"config file {str(path)!r} not found.")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{path}: not valid TOML: {e}") from None
+    try:
+        return from_dict(RunConfig, data)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
