@@ -1,0 +1,178 @@
+"""TSVD/Tikhonov against naive dense solutions, parameter rules, grids and image metrics."""
+
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+
+from jaxhead import TetMesh, orient_tets
+from jaxhead.inverse import (
+    TSVD,
+    Tikhonov,
+    add_noise,
+    grid_to_tets,
+    image_metrics,
+    jacobian_to_grid,
+    make_grid,
+    reconstruct,
+    spherical_perturbation,
+    svd,
+)
+
+
+def blur_problem(m=60, n=80, width=0.08, seed=0):
+    """A discrete ill-posed problem: Gaussian blur of a smooth profile (like Hansen's 'shaw')."""
+    s = np.linspace(0, 1, m)[:, None]
+    t = np.linspace(0, 1, n)[None, :]
+    J = np.exp(-((s - t) ** 2) / (2 * width**2)) / n
+    x_true = np.exp(-((t[0] - 0.4) ** 2) / 0.01) + 0.5 * np.exp(-((t[0] - 0.7) ** 2) / 0.003)
+    b = J @ x_true
+    return J, x_true, b
+
+
+def test_svd_paths_agree():
+    rng = np.random.default_rng(1)
+    J = rng.standard_normal((20, 200)) @ np.diag(np.geomspace(1, 1e-3, 200))
+    d = svd(J)  # wide: Gram path
+    s_ref = np.linalg.svd(J, compute_uv=False)
+    np.testing.assert_allclose(np.asarray(d.s), s_ref[: d.s.shape[0]], rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(d.u * d.s) @ np.asarray(d.vt), J, atol=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(40, 30), (30, 400)])
+def test_tsvd_matches_truncated_pseudo_inverse(shape):
+    rng = np.random.default_rng(0)
+    J = rng.standard_normal(shape)
+    b = rng.standard_normal(shape[0])
+    k = 7
+    u, s, vt = np.linalg.svd(J, full_matrices=False)
+    x_ref = vt[:k].T @ ((u[:, :k].T @ b) / s[:k])
+    rec = reconstruct(J, b, TSVD(k))
+    np.testing.assert_allclose(np.asarray(rec.image), x_ref, rtol=1e-8, atol=1e-12)
+    assert rec.k == k and rec.rule == "given"
+    np.testing.assert_allclose(rec.residual_norm, np.linalg.norm(J @ x_ref - b), rtol=1e-8)
+
+
+@pytest.mark.parametrize("shape", [(40, 30), (30, 400)])
+def test_tikhonov_matches_normal_equations(shape):
+    rng = np.random.default_rng(2)
+    J = rng.standard_normal(shape)
+    b = rng.standard_normal(shape[0])
+    lam = 0.7
+    x_ref = np.linalg.solve(J.T @ J + lam**2 * np.eye(shape[1]), J.T @ b)
+    rec = reconstruct(J, b, Tikhonov(lam))
+    np.testing.assert_allclose(np.asarray(rec.image), x_ref, rtol=1e-8, atol=1e-12)
+
+
+def test_noise_weighted_tikhonov():
+    rng = np.random.default_rng(3)
+    J = rng.standard_normal((25, 15))
+    b = rng.standard_normal(25)
+    std = rng.uniform(0.5, 2.0, 25)
+    W = np.diag(1 / std)
+    lam = 0.3
+    x_ref = np.linalg.solve(J.T @ W @ W @ J + lam**2 * np.eye(15), J.T @ W @ W @ b)
+    rec = reconstruct(J, b, Tikhonov(lam, noise_weighted=True), noise_std=std)
+    np.testing.assert_allclose(np.asarray(rec.image), x_ref, rtol=1e-8)
+
+
+def test_gcv_choice_is_near_optimal():
+    J, x_true, b = blur_problem()
+    rng = np.random.default_rng(4)
+    sigma = 1e-3 * np.abs(b).max()
+    bn = b + sigma * rng.standard_normal(b.shape)
+    dec = svd(J)
+    errs = [np.linalg.norm(np.asarray(reconstruct(J, bn, TSVD(k), decomposition=dec).image) - x_true)
+            for k in range(1, 40)]
+    best = min(errs)
+    for method in (TSVD(), Tikhonov()):
+        rec = reconstruct(J, bn, method)
+        err = np.linalg.norm(np.asarray(rec.image) - x_true)
+        # GCV is not the oracle; within a factor 3 of the best TSVD error (Hansen 1998, ch. 7).
+        assert err < 3 * best, (method, err, best)
+        assert rec.rule == "gcv"
+
+
+def test_discrepancy_rule_meets_the_noise_level():
+    J, x_true, b = blur_problem()
+    rng = np.random.default_rng(5)
+    sigma = 1e-3 * np.abs(b).max()
+    bn = b + sigma * rng.standard_normal(b.shape)
+    target = 1.05 * np.sqrt(b.size) * sigma
+    rec = reconstruct(J, bn, TSVD(rule="discrepancy"), noise_std=sigma)
+    assert rec.residual_norm <= target
+    prev = reconstruct(J, bn, TSVD(int(rec.k) - 1))
+    assert prev.residual_norm > target  # the smallest k that meets it
+    rec = reconstruct(J, bn, Tikhonov(rule="discrepancy"), noise_std=sigma)
+    assert rec.residual_norm <= target * 1.0001
+    assert rec.residual_norm > 0.5 * target  # not over-fitted to the noise
+
+
+def test_reconstruct_errors():
+    J = np.ones((4, 3))
+    with pytest.raises(ValueError, match="one voltage change per protocol row"):
+        reconstruct(J, np.ones(5))
+    with pytest.raises(ValueError, match="needs `noise_std`"):
+        reconstruct(J, np.ones(4), TSVD(rule="discrepancy"))
+    with pytest.raises(ValueError, match="NaN"):
+        reconstruct(J, np.array([1, np.nan, 0, 0]))
+    with pytest.raises(ValueError, match=">= 1"):
+        TSVD(0)
+    with pytest.raises(ValueError, match="> 0"):
+        Tikhonov(-1.0)
+
+
+def small_mesh(seed=0):
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-20, 20, (400, 3))
+    tets = Delaunay(pts).simplices
+    tets, _ = orient_tets(pts, tets)
+    vol = np.abs(np.einsum("ij,ij->i", np.cross(pts[tets[:, 1]] - pts[tets[:, 0]],
+                                                  pts[tets[:, 2]] - pts[tets[:, 0]]),
+                           pts[tets[:, 3]] - pts[tets[:, 0]]))
+    tets = tets[vol > 1e-9]
+    r = np.linalg.norm(pts[tets].mean(1), axis=1)
+    labels = np.digitize(r, [8, 12, 16]) + 1
+    return TetMesh(pts, tets, labels)
+
+
+def test_grid_sums_jacobian_columns():
+    mesh = small_mesh()
+    grid = make_grid(mesh, 10.0)
+    np.testing.assert_allclose(grid.volumes.sum(), mesh.tet_volumes().sum(), rtol=1e-12)
+    J = np.random.default_rng(0).standard_normal((5, mesh.n_tets))
+    P = np.zeros((mesh.n_tets, grid.n_cells))
+    P[np.arange(mesh.n_tets), grid.cell_of_tet] = 1
+    np.testing.assert_allclose(jacobian_to_grid(J, grid), J @ P, rtol=1e-12)
+    # A uniform cell change is the same as changing each of its tets.
+    x = np.random.default_rng(1).standard_normal(grid.n_cells)
+    np.testing.assert_allclose(J @ grid_to_tets(x, grid), jacobian_to_grid(J, grid) @ x, rtol=1e-10)
+    brain = make_grid(mesh, 10.0, tissues=["brain"])
+    assert np.all((brain.cell_of_tet >= 0) == (mesh.labels == 1))
+
+
+def test_perturbation_and_metrics():
+    mesh = small_mesh()
+    sigma = np.ones(mesh.n_tets)
+    pert = spherical_perturbation(mesh, sigma, [0, 0, 0], 10.0, 0.2)
+    inside = np.linalg.norm(mesh.centroids(), axis=1) <= 10
+    np.testing.assert_allclose(pert[inside], 1.2)
+    np.testing.assert_allclose(pert[~inside], 1.0)
+    with pytest.raises(ValueError, match="no BRAIN tet"):
+        spherical_perturbation(mesh, sigma, [100, 0, 0], 1.0, 0.1, tissue="brain")
+    # An exact indicator image of a ball on a fine regular grid: zero error, volume ratio ~1.
+    g = np.arange(-30, 30.5, 1.0)
+    c = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    img = (np.linalg.norm(c - [5, -3, 2], axis=1) <= 8).astype(float)
+    m = image_metrics(img, c, np.ones(len(c)), [5, -3, 2], 8.0)
+    assert m.localisation_error_mm < 1e-9
+    assert abs(m.volume_ratio - 1) < 0.03 and abs(m.diameter_mm - 16) < 0.3
+    m = image_metrics(-img, c, np.ones(len(c)), [5, -3, 2], 8.0)
+    assert m.peak_value == -1
+
+
+def test_noise_statistics():
+    v = np.linspace(1e-3, 2e-3, 50)
+    samples = np.stack([add_noise(v, 0.5, seed=s) for s in range(2000)])
+    rel_std = samples.std(0) / (0.005 * v)
+    assert abs(rel_std.mean() - 1) < 0.03  # 2000 samples: std of the std estimate ~1.6 %
+    np.testing.assert_array_equal(add_noise(v, 0.5, seed=3), add_noise(v, 0.5, seed=3))
