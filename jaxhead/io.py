@@ -1,0 +1,859 @@
+"""Reading and writing volumes, label maps, meshes and surfaces; resampling; atomic writes.  [host]
+
+Images go through nibabel (NIfTI-1/2 ``.nii``/``.nii.gz`` and Analyze 7.5 / NIfTI-1 pairs
+``.hdr``/``.img``), tetrahedral meshes through meshio (Gmsh ``.msh``, VTK ``.vtu``) and
+scipy.io (MATLAB ``.mat``), surfaces through trimesh (``.stl``, ``.ply``, ``.obj``).
+
+Every file is written atomically (:func:`atomic_write_path`): to a temporary file in the target
+directory, renamed over the target only when the writer succeeded, so a crash or an exception
+never leaves a half-written file under the final name.
+
+Conventions: a volume's affine maps voxel *centres* (integer indices) to world mm, as NIfTI does
+(NIfTI-1 header documentation, "qform/sform"), and loaded volumes are reoriented to the closest
+canonical RAS+ orientation so that array axes run (roughly) Right, Anterior, Superior.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gzip
+import io as stdio
+import logging
+import os
+import secrets
+import struct
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import meshio
+import nibabel as nib
+import numpy as np
+import scipy.io
+import trimesh
+from nibabel.filebasedimages import ImageFileError
+from nibabel.fileholders import FileHolder
+from nibabel.spatialimages import HeaderDataError
+from scipy import ndimage
+
+from .mesh import TetMesh, orient_tets
+from .surface import Surface
+from .tissue import TISSUES, Tissue
+from .volume import LabelMap, Volume, voxel_sizes
+
+__all__ = [
+    "MESH_EXTENSIONS",
+    "SURFACE_EXTENSIONS",
+    "VOLUME_EXTENSIONS",
+    "atomic_write_path",
+    "format_info",
+    "info",
+    "load_labels",
+    "load_mesh",
+    "load_surface",
+    "load_volume",
+    "resample",
+    "save_labels",
+    "save_mesh",
+    "save_surface",
+    "save_volume",
+]
+
+log = logging.getLogger(__name__)
+
+#: Image formats read by load_volume/load_labels/info and written by save_volume/save_labels.
+#: ``.hdr``/``.img`` are read as Analyze 7.5 or NIfTI-1 pairs and written as NIfTI-1 pairs.
+VOLUME_EXTENSIONS: tuple[str, ...] = (".nii", ".nii.gz", ".hdr", ".img")
+#: Tetrahedral mesh formats of save_mesh/load_mesh.
+MESH_EXTENSIONS: tuple[str, ...] = (".msh", ".vtu", ".mat")
+#: Triangle surface formats of save_surface/load_surface.
+SURFACE_EXTENSIONS: tuple[str, ...] = (".stl", ".ply", ".obj")
+
+# Errors nibabel, gzip and numpy raise on damaged or foreign files.
+_READ_ERRORS = (
+    ImageFileError, HeaderDataError, OSError, EOFError, ValueError, zlib.error, struct.error,
+    TypeError, KeyError, IndexError,
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# Atomic writes
+# ---------------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def atomic_write_path(path: str | os.PathLike, *, fsync: bool = True) -> Iterator[Path]:
+    """Yield a temporary path beside `path`; on success rename it onto `path`, else delete it.
+
+    The temporary name is ``.tmp-<random>-<name>``: hidden, in the same directory (so
+    ``os.replace`` is an atomic rename on POSIX and Windows), and ending with the target's
+    full name so that writers choosing the format by extension (nibabel's ``.nii.gz``,
+    meshio, trimesh, matplotlib) see the right one. The file is not created in advance; the
+    writer creates it (with the usual permissions). An existing `path` is replaced only after
+    the block finished without an exception; if it raised, `path` is untouched.
+
+    Arguments:
+        path: the final file path; its directory must exist.
+        fsync: flush the temporary file to disk before the rename, so that a crash right after
+            it cannot leave an empty file under the final name.
+
+    Yields:
+        the temporary path to write to.
+    """
+    path = Path(path)
+    parent = path.parent
+    if not parent.is_dir():
+        raise FileNotFoundError(
+            f"cannot write {str(path)!r}: directory {str(parent)!r} does not exist; create it first."
+        )
+    if path.is_dir():
+        raise ValueError(f"cannot write {str(path)!r}: it is a directory; pass a file path.")
+    tmp = parent / f".tmp-{secrets.token_hex(6)}-{path.name}"
+    try:
+        yield tmp
+        if not tmp.exists():
+            raise FileNotFoundError(
+                f"the writer for {str(path)!r} did not create its temporary file {str(tmp)!r}; "
+                "write to the path yielded by atomic_write_path."
+            )
+        if fsync:
+            with open(tmp, "rb") as fh:
+                os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+# ---------------------------------------------------------------------------------------------
+# Volumes: reading
+# ---------------------------------------------------------------------------------------------
+
+
+def _volume_kind(path: Path) -> str:
+    name = path.name.lower()
+    if name.endswith(".nii.gz"):
+        return "nii.gz"
+    for ext in (".nii", ".hdr", ".img"):
+        if name.endswith(ext):
+            return ext[1:]
+    raise ValueError(
+        f"{str(path)!r}: unsupported image extension {''.join(path.suffixes) or '(none)'!r}; "
+        f"supported: {', '.join(VOLUME_EXTENSIONS)} (convert other formats, e.g. DICOM with "
+        "dcm2niix, to NIfTI first)."
+    )
+
+
+def _partner(path: Path, ext: str) -> Path:
+    """The other file of an Analyze/NIfTI pair, with the case of the given suffix."""
+    return path.with_suffix(ext.upper() if path.suffix.isupper() else ext)
+
+
+def _check_readable(path: Path) -> str:
+    kind = _volume_kind(path)
+    if path.is_dir():
+        raise ValueError(f"{str(path)!r} is a directory; pass an image file.")
+    if not path.exists():
+        raise FileNotFoundError(f"{str(path)!r}: no such file; check the path.")
+    if kind in ("hdr", "img"):
+        other = _partner(path, ".img" if kind == "hdr" else ".hdr")
+        if not other.exists():
+            raise FileNotFoundError(
+                f"{str(path)!r} is half of an Analyze/NIfTI pair but its partner {str(other)!r} "
+                "is missing; keep the .hdr and .img files together."
+            )
+    header_file = _partner(path, ".hdr") if kind == "img" else path
+    if header_file.stat().st_size == 0:
+        raise ValueError(f"{str(header_file)!r} is empty (0 bytes); re-export or re-download it.")
+    return kind
+
+
+def _header_problem(path: Path, kind: str) -> str:
+    """Say why nibabel could not read the header of `path` (truncated, not gzip, not NIfTI)."""
+    header_file = _partner(path, ".hdr") if kind == "img" else path
+    head = b""
+    try:
+        if kind == "nii.gz":
+            with open(header_file, "rb") as fh:
+                magic = fh.read(2)
+            if magic != b"\x1f\x8b":
+                hint = ("it looks like an uncompressed NIfTI: rename it to .nii"
+                        if _sizeof_hdr_ok(_read_head(header_file, gz=False)) else
+                        "it is not an image file")
+                return f"is named .gz but is not gzip-compressed ({hint})"
+        head = _read_head(header_file, gz=kind == "nii.gz")
+    except (EOFError, OSError, zlib.error) as e:
+        return f"is truncated or corrupt: decompressing its header failed ({e})"
+    if len(head) < 348:
+        return (f"is truncated: its header has {len(head)} bytes, but a NIfTI-1/Analyze header "
+                "alone is 348 bytes")
+    if not _sizeof_hdr_ok(head):
+        text = head[:40].decode("ascii", errors="replace")
+        looks = (f"; it starts with text {text.splitlines()[0]!r}"
+                 if text[:1].isprintable() and text.splitlines() else "")
+        return ("is not a NIfTI/Analyze image: its first 4 bytes are not the header size "
+                f"(sizeof_hdr 348 or 540){looks}")
+    return ""
+
+
+def _read_head(path: Path, gz: bool) -> bytes:
+    opener = gzip.open if gz else open
+    with opener(path, "rb") as fh:
+        return fh.read(540)
+
+
+def _sizeof_hdr_ok(head: bytes) -> bool:
+    if len(head) < 4:
+        return False
+    return any(struct.unpack(e + "i", head[:4])[0] in (348, 540) for e in "<>")
+
+
+def _open_image(path: str | os.PathLike) -> tuple[Any, Path]:
+    """nibabel image of `path` (header read, data not yet) with file problems as ValueError."""
+    path = Path(path)
+    kind = _check_readable(path)
+    try:
+        img = nib.load(str(path))
+    except _READ_ERRORS as e:
+        problem = _header_problem(path, kind) or f"could not be read by nibabel ({e})"
+        raise ValueError(
+            f"{str(path)!r} {problem}. Check that it is a complete NIfTI or Analyze image; "
+            "re-export or re-download it."
+        ) from e
+    return img, path
+
+
+def _read_data(img, path: Path) -> np.ndarray:
+    """All voxels as float64 with scl_slope/scl_inter applied; truncation as ValueError."""
+    try:
+        return np.asarray(img.get_fdata(dtype=np.float64))
+    except _READ_ERRORS as e:
+        hdr = img.header
+        dtype = hdr.get_data_dtype()
+        need = int(np.prod(img.shape)) * dtype.itemsize
+        raise ValueError(
+            f"{str(path)!r} is truncated or corrupt: reading its voxel data failed ({e}). The "
+            f"header promises shape {tuple(img.shape)} of {dtype} ({need} bytes); re-export or "
+            "re-download the file."
+        ) from e
+
+
+def _format_name(img) -> str:
+    return {
+        "Nifti1Image": "NIfTI-1", "Nifti2Image": "NIfTI-2", "Nifti1Pair": "NIfTI-1 pair",
+        "Nifti2Pair": "NIfTI-2 pair", "AnalyzeImage": "Analyze 7.5",
+        "Spm99AnalyzeImage": "Analyze 7.5 (SPM99)", "Spm2AnalyzeImage": "Analyze 7.5 (SPM2)",
+    }.get(type(img).__name__, type(img).__name__)
+
+
+def _load_3d(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Path]:
+    """Read, check and reorient one 3D image to canonical RAS: (data float64, affine, path)."""
+    img, path = _open_image(path)
+    shape = tuple(int(s) for s in img.shape)
+    if 0 in shape:
+        raise ValueError(
+            f"{str(path)!r} has no voxels (shape {shape}); it is empty: re-export the image."
+        )
+    if len(shape) < 3 or min(shape[:3]) < 2:
+        raise ValueError(
+            f"{str(path)!r} is 2D (shape {shape}); jaxhead needs a 3D volume with at least 2 "
+            "voxels along each axis: pass the full 3D scan, not a single slice."
+        )
+    if len(shape) > 3:
+        n_vol = int(np.prod(shape[3:]))
+        if n_vol > 1:
+            raise ValueError(
+                f"{str(path)!r} holds {n_vol} volumes (shape {shape}); jaxhead needs one 3D "
+                "volume. Extract one first, e.g. `nibabel.load(path).slicer[..., 0]` then save, "
+                "or `fslroi in out 0 1`."
+            )
+        log.info("%s: squeezed single-volume %dD image of shape %s to 3D", path, len(shape), shape)
+        img = img.slicer[(slice(None),) * 3 + (0,) * (len(shape) - 3)]
+    _warn_orientation(img, path)
+    codes = "".join(nib.aff2axcodes(img.affine))
+    img = nib.as_closest_canonical(img)
+    if codes != "RAS":
+        log.info("%s: reoriented from %s to canonical RAS", path, codes)
+    data = _read_data(img, path)
+    finite = np.isfinite(data)
+    if not finite.all():
+        n = int(data.size - finite.sum())
+        first = tuple(int(i) for i in np.argwhere(~finite)[0])
+        raise ValueError(
+            f"{str(path)!r} has {n} of {data.size} voxels that are NaN or Inf (first at "
+            f"canonical voxel {first}); replace them, e.g. `fslmaths in -nan out` or "
+            "numpy.nan_to_num, and save the image again."
+        )
+    return data, np.asarray(img.affine, dtype=np.float64), path
+
+
+def _warn_orientation(img, path: Path) -> None:
+    """Report (never silently) images whose header carries no real orientation."""
+    hdr = img.header
+    if isinstance(img, (nib.Nifti1Image, nib.Nifti1Pair, nib.Nifti2Image, nib.Nifti2Pair)):
+        if int(hdr["sform_code"]) == 0 and int(hdr["qform_code"]) == 0:
+            log.warning(
+                "%s: sform_code and qform_code are 0 (no orientation); nibabel's fallback affine "
+                "(voxel sizes only, %s) is used", path, "".join(nib.aff2axcodes(img.affine)))
+    elif isinstance(img, nib.AnalyzeImage):
+        log.warning(
+            "%s: Analyze 7.5 stores no orientation; nibabel assumes the radiological LAS "
+            "convention (x flipped). Check left/right before trusting the result", path)
+
+
+def load_volume(path: str | os.PathLike) -> Volume:
+    """Read a 3D image, reoriented to canonical RAS, intensities scaled by scl_slope/scl_inter.
+
+    A 4D file holding one volume is squeezed to 3D. Reorientation only permutes and flips the
+    array (nibabel.as_closest_canonical); world coordinates of every voxel are unchanged.
+
+    Arguments:
+        path: ``.nii``, ``.nii.gz``, or an Analyze/NIfTI ``.hdr``/``.img`` pair (either name).
+
+    Returns:
+        Volume with data (x, y, z) float64 and affine (4, 4) voxel -> world mm.
+
+    Raises:
+        FileNotFoundError: the file (or the other half of a pair) does not exist.
+        ValueError: unsupported extension; empty, 2D, multi-volume, truncated or non-image
+            file; NaN/Inf voxels; an invalid affine. The message names the file.
+    """
+    data, affine, path = _load_3d(path)
+    try:
+        return Volume(data, affine)
+    except ValueError as e:
+        raise ValueError(f"{str(path)!r}: {e}") from e
+
+
+def load_labels(path: str | os.PathLike) -> LabelMap:
+    """Read a label image (integer Tissue values 0..4), reoriented to canonical RAS.
+
+    Arguments:
+        path: as for :func:`load_volume`.
+
+    Returns:
+        LabelMap with labels (x, y, z) uint8 and affine (4, 4) voxel -> world mm.
+    """
+    data, affine, path = _load_3d(path)
+    rounded = np.round(data)
+    if not np.array_equal(rounded, data):
+        bad = np.unique(data[rounded != data])
+        raise ValueError(
+            f"{str(path)!r} is not a label image: it has non-integer values such as "
+            f"{bad[:5].tolist()}; pass a label map with Tissue values "
+            f"({', '.join(f'{t.value}={t.name}' for t in Tissue)}), or load it with load_volume."
+        )
+    try:
+        return LabelMap(rounded.astype(np.int64), affine)
+    except ValueError as e:
+        raise ValueError(f"{str(path)!r}: {e}") from e
+
+
+# ---------------------------------------------------------------------------------------------
+# Volumes: writing
+# ---------------------------------------------------------------------------------------------
+
+
+def _write_image(data: np.ndarray, affine: np.ndarray, path: str | os.PathLike,
+                 intent: str | None = None) -> Path:
+    path = Path(path)
+    kind = _volume_kind(path)
+    pair = kind in ("hdr", "img")
+    img = (nib.Nifti1Pair if pair else nib.Nifti1Image)(data, affine)
+    hdr = img.header
+    hdr.set_xyzt_units("mm")
+    # Both codes 1 (scanner): the affine is the image's own world frame; readers prefer the
+    # exact sform, the qform is its rigid approximation for tools that read only the qform.
+    img.set_sform(affine, code="scanner")
+    img.set_qform(affine, code="scanner")
+    if intent is not None:
+        hdr.set_intent(intent)
+    if not pair:
+        with atomic_write_path(path) as tmp:
+            img.to_filename(str(tmp))
+        return path
+    # A NIfTI-1 pair (magic "ni1"): readable as Analyze by old tools, yet keeps the affine,
+    # which plain Analyze 7.5 cannot store. Each file is written atomically, .img first.
+    hdr_path, img_path = _partner(path, ".hdr"), _partner(path, ".img")
+    with atomic_write_path(hdr_path) as th, atomic_write_path(img_path) as ti:
+        img.to_file_map({"header": FileHolder(filename=str(th)), "image": FileHolder(filename=str(ti))})
+    return path
+
+
+def save_volume(volume: Volume, path: str | os.PathLike, *, dtype: Any = np.float32) -> Path:
+    """Write a Volume as NIfTI-1 (``.nii``, ``.nii.gz``) or a NIfTI-1 ``.hdr``/``.img`` pair, atomically.
+
+    Arguments:
+        volume: the image; its affine is stored as sform and qform (code 1, mm).
+        path: target file; the extension picks the format.
+        dtype: on-disk float type; float32 (default) keeps ~7 significant digits, which is
+            below any scanner's noise; pass numpy.float64 for a bit-exact round trip.
+
+    Returns:
+        the path written.
+    """
+    if isinstance(volume, LabelMap):
+        raise TypeError("save_volume got a LabelMap; use save_labels for label maps.")
+    if not isinstance(volume, Volume):
+        raise TypeError(f"save_volume needs a Volume, got {type(volume).__name__}.")
+    dtype = np.dtype(dtype)
+    if dtype.kind != "f":
+        raise ValueError(f"`dtype` must be a float type (float32 or float64), got {dtype}.")
+    data = volume.data.astype(dtype)
+    if not np.all(np.isfinite(data)):
+        raise ValueError(
+            f"the volume's intensities overflow {dtype} (|max| = {np.abs(volume.data).max():.3g}); "
+            "pass dtype=numpy.float64."
+        )
+    return _write_image(data, volume.affine, path)
+
+
+def save_labels(labels: LabelMap, path: str | os.PathLike) -> Path:
+    """Write a LabelMap as uint8 NIfTI with intent "label" (NIFTI_INTENT_LABEL), atomically.
+
+    Arguments:
+        labels: Tissue labels 0..4 (BACKGROUND, BRAIN, CSF, SKULL, SCALP).
+        path: ``.nii``, ``.nii.gz`` or ``.hdr``/``.img``.
+
+    Returns:
+        the path written.
+    """
+    if not isinstance(labels, LabelMap):
+        raise TypeError(
+            f"save_labels needs a LabelMap, got {type(labels).__name__}"
+            + ("; use save_volume for intensity images." if isinstance(labels, Volume) else ".")
+        )
+    return _write_image(labels.labels.astype(np.uint8), labels.affine, path, intent="label")
+
+
+# ---------------------------------------------------------------------------------------------
+# info
+# ---------------------------------------------------------------------------------------------
+
+
+def info(path: str | os.PathLike) -> dict[str, Any]:
+    """Describe an image file as stored (before reorientation), for ``jaxhead info PATH``.
+
+    Unlike load_volume this does not reject NaN/Inf, empty or multi-volume images: it reports
+    them (``n_nonfinite``), so that a bad file can be inspected.
+
+    Arguments:
+        path: an image file (see VOLUME_EXTENSIONS).
+
+    Returns:
+        dict with keys path (str), format (str), shape (tuple), voxel_mm (3 floats),
+        orientation (axis codes of the file's own affine, e.g. "LPS"), dtype (on-disk type),
+        min, max, mean (of the finite scaled intensities; None if there are none),
+        n_nonfinite (int) and affine (4x4 nested lists).
+    """
+    img, path = _open_image(path)
+    hdr = img.header
+    shape = tuple(int(s) for s in img.shape)
+    data = _read_data(img, path)
+    finite = data[np.isfinite(data)]
+    stats = ((float(finite.min()), float(finite.max()), float(finite.mean()))
+             if finite.size else (None, None, None))
+    zooms = tuple(float(z) for z in hdr.get_zooms()[:3])
+    orientation = "".join(nib.aff2axcodes(img.affine)) if len(shape) >= 3 else "n/a"
+    return {
+        "path": str(path),
+        "format": _format_name(img),
+        "shape": shape,
+        "voxel_mm": zooms,
+        "orientation": orientation,
+        "dtype": str(hdr.get_data_dtype()),
+        "min": stats[0],
+        "max": stats[1],
+        "mean": stats[2],
+        "n_nonfinite": int(data.size - finite.size),
+        "affine": np.asarray(img.affine, dtype=np.float64).tolist(),
+    }
+
+
+def format_info(d: dict[str, Any]) -> str:
+    """Human-readable multi-line text of an :func:`info` dict."""
+
+    def g(x):
+        return "n/a" if x is None else f"{x:.6g}"
+
+    lines = [
+        ("file", d["path"]),
+        ("format", d["format"]),
+        ("shape", " x ".join(str(s) for s in d["shape"])),
+        ("voxel size", " x ".join(f"{v:.4g}" for v in d["voxel_mm"]) + " mm"),
+        ("orientation", d["orientation"] + ("" if d["orientation"] == "RAS"
+                                              else " (load_volume reorients to RAS)")),
+        ("data type", d["dtype"]),
+        ("intensity", f"min {g(d['min'])}, max {g(d['max'])}, mean {g(d['mean'])}"),
+    ]
+    if d.get("n_nonfinite"):
+        lines.append(("non-finite", f"{d['n_nonfinite']} voxels are NaN/Inf"))
+    width = max(len(k) for k, _ in lines)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# Resampling
+# ---------------------------------------------------------------------------------------------
+
+
+def _antialias_sigma(factor: np.ndarray) -> np.ndarray:
+    """Gaussian prefilter widths (in input voxels) for downsampling by `factor` per axis.
+
+    A voxel of the coarser grid should report the mean over its footprint, i.e. the input
+    convolved with a box f input voxels wide (partial-volume averaging, what a scanner with
+    the coarser voxel measures). For an integer f that box average over f samples has variance
+    (f^2 - 1) / 12 (a discrete uniform distribution); we use a Gaussian with that variance, so
+    that for f = 1, 3, 5, ... the result reproduces f x f x f block averaging exactly on any
+    quadratic and suppresses the Nyquist frequency of the input (e.g. f = 3: sigma = 0.82,
+    gain exp(-2 pi^2 sigma^2 / 4) = 0.04). Up-sampling (f <= 1) needs no filter.
+    scipy's sampled Gaussian has a variance within 0.1% of sigma^2 for sigma >= 0.8 (f >= 3);
+    at f = 2 (sigma = 0.5) it is 14% below, a slightly milder filter.
+    """
+    f = np.maximum(np.asarray(factor, dtype=np.float64), 1.0)
+    return np.sqrt((f**2 - 1.0) / 12.0)
+
+
+def _parse_voxel_mm(voxel_mm) -> np.ndarray:
+    try:
+        v = np.broadcast_to(np.asarray(voxel_mm, dtype=np.float64), (3,)).copy()
+    except (ValueError, TypeError):
+        raise ValueError(
+            f"`voxel_mm` must be one number or three (x, y, z), in mm; got {voxel_mm!r}."
+        ) from None
+    if not np.all(np.isfinite(v)) or np.any(v <= 0):
+        raise ValueError(f"`voxel_mm` must be positive and finite, got {v.tolist()} mm.")
+    return v
+
+
+def resample(volume: Volume | LabelMap, voxel_mm, *, order: int | None = None) -> Volume | LabelMap:
+    """Resample a Volume or LabelMap to a new voxel size over the same field of view.
+
+    The field of view is the box covered by the voxels (centres +- half a voxel, as NIfTI
+    places voxel centres at integer indices). The new grid has n' = round(n v / v') voxels per
+    axis of size exactly v', centred on the same world point, so the box is kept up to v'/2
+    in total (exactly when n v / v' is an integer). The new affine is A @ T with
+    T: j -> s j + (n - 1)/2 - s (n' - 1)/2, s = v'/v, so world positions are preserved.
+
+    Volumes use trilinear interpolation (order 1) by default, after a Gaussian anti-aliasing
+    filter along every axis that is downsampled (see _antialias_sigma). LabelMaps use nearest
+    neighbour (order 0), the only order that keeps labels categorical; for even downsampling
+    factors every output centre lies midway between input voxels and nearest neighbour breaks
+    these ties the same way (scipy rounds up), moving boundaries by up to half an input voxel.
+    Outside the input grid values are extended from the nearest edge voxel (at most half an
+    input voxel).
+
+    Arguments:
+        volume: the Volume or LabelMap to resample.
+        voxel_mm: new voxel size in mm, one number (isotropic) or three (per array axis).
+        order: spline order 0..5 (scipy.ndimage) for a Volume, 0 for a LabelMap; None for
+            the defaults (1 and 0).
+
+    Returns:
+        an object of the same type on the new grid.
+    """
+    if isinstance(volume, Volume):
+        is_labels = False
+        data = volume.data
+    elif isinstance(volume, LabelMap):
+        is_labels = True
+        data = volume.labels
+    else:
+        raise TypeError(f"resample needs a Volume or a LabelMap, got {type(volume).__name__}.")
+    new_vox = _parse_voxel_mm(voxel_mm)
+    if order is None:
+        order = 0 if is_labels else 1
+    if not isinstance(order, (int, np.integer)) or isinstance(order, bool) or not 0 <= order <= 5:
+        raise ValueError(f"`order` must be an integer 0..5 (spline order) or None, got {order!r}.")
+    if is_labels and order != 0:
+        raise ValueError(
+            f"`order` = {order} on a LabelMap would mix tissue numbers; labels are resampled by "
+            "nearest neighbour (order=0). For smoother label maps resample each tissue's "
+            "indicator as a Volume and take the arg-max."
+        )
+    old_vox = voxel_sizes(volume.affine)
+    shape = np.asarray(data.shape, dtype=np.float64)
+    new_shape = np.floor(shape * old_vox / new_vox + 0.5).astype(int)
+    if np.any(new_shape < 2):
+        raise ValueError(
+            f"`voxel_mm` = {new_vox.tolist()} is too coarse for a field of view of "
+            f"{(shape * old_vox).round(2).tolist()} mm: the result would have shape "
+            f"{tuple(new_shape.tolist())}; every axis needs >= 2 voxels."
+        )
+    scale = new_vox / old_vox  # input voxels per output voxel, per axis
+    offset = (shape - 1) / 2 - scale * (new_shape - 1) / 2
+    t = np.eye(4)
+    t[:3, :3] = np.diag(scale)
+    t[:3, 3] = offset
+    affine = volume.affine @ t
+    sigma = _antialias_sigma(scale)
+    out_shape = tuple(int(n) for n in new_shape)
+
+    def warp(x: np.ndarray) -> np.ndarray:
+        # A diagonal matrix makes affine_transform take scipy's fast zoom/shift path; output
+        # voxel j samples input voxel coordinate scale * j + offset.
+        return ndimage.affine_transform(x, scale, offset=offset, output_shape=out_shape,
+                                        order=order, mode="nearest")
+
+    if is_labels:
+        return LabelMap(warp(data), affine)
+    if order > 0 and np.any(sigma > 0):
+        data = ndimage.gaussian_filter(data, sigma, mode="nearest")
+    return Volume(warp(data), affine)
+
+
+# ---------------------------------------------------------------------------------------------
+# Tetrahedral meshes
+# ---------------------------------------------------------------------------------------------
+
+
+def _ext(path: Path, supported: tuple[str, ...], what: str) -> str:
+    ext = path.suffix.lower()
+    if ext not in supported:
+        raise ValueError(
+            f"{str(path)!r}: unsupported {what} extension {ext or '(none)'!r}; "
+            f"supported: {', '.join(supported)}."
+        )
+    return ext
+
+
+def save_mesh(mesh: TetMesh, path: str | os.PathLike, *, binary: bool = True) -> Path:
+    """Write a TetMesh; the extension picks the format. Atomic.
+
+    Formats:
+        ``.msh``: Gmsh 2.2 (readable by Gmsh, SimNIBS, EIDORS' gmsh_mk_fwd_model), via meshio.
+            Each tissue is a physical volume: cell data ``gmsh:physical`` = ``gmsh:geometrical``
+            = the Tissue value (1..4), named BRAIN, CSF, SKULL, SCALP in $PhysicalNames.
+        ``.vtu``: VTK unstructured grid for ParaView, via meshio; tissue in cell data "tissue".
+        ``.mat``: MATLAB v5 via scipy.io.savemat, the seed paper's final format:
+            ``node`` (n_nodes, 3) double, mm; ``element`` (n_tets, 4) double, 1-based node
+            indices (MATLAB/EIDORS indexing; double, as MATLAB's sparse() needs);
+            ``tissue`` (n_tets, 1) double, Tissue values 1..4; ``tissue_names`` 1x4 cell
+            {'brain','csf','skull','scalp'} indexed by tissue value. In EIDORS:
+            ``fmdl.nodes = node; fmdl.elems = element;`` (then mm -> m if wanted).
+
+    Arguments:
+        mesh: the mesh (positively oriented tets, node coordinates in mm).
+        path: target file.
+        binary: binary .msh / compressed binary .vtu (default); False for ASCII.
+
+    Returns:
+        the path written.
+    """
+    if not isinstance(mesh, TetMesh):
+        raise TypeError(f"save_mesh needs a TetMesh, got {type(mesh).__name__}.")
+    path = Path(path)
+    ext = _ext(path, MESH_EXTENSIONS, "mesh")
+    labels = mesh.labels.astype(np.int32)
+    with atomic_write_path(path) as tmp:
+        if ext == ".msh":
+            m = meshio.Mesh(
+                mesh.nodes, [("tetra", mesh.tets)],
+                cell_data={"gmsh:physical": [labels], "gmsh:geometrical": [labels]},
+                field_data={t.name: np.array([int(t), 3]) for t in TISSUES},
+            )
+            meshio.write(tmp, m, file_format="gmsh22", binary=binary)
+        elif ext == ".vtu":
+            m = meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)], cell_data={"tissue": [labels]})
+            meshio.write(tmp, m, file_format="vtu", binary=binary)
+        else:
+            names = np.empty((1, len(TISSUES)), dtype=object)
+            names[0, :] = [t.name.lower() for t in TISSUES]
+            scipy.io.savemat(
+                tmp,
+                {
+                    "node": mesh.nodes.astype(np.float64),
+                    "element": (mesh.tets + 1).astype(np.float64),
+                    "tissue": mesh.labels.astype(np.float64).reshape(-1, 1),
+                    "tissue_names": names,
+                },
+                appendmat=False, do_compression=True, oned_as="column",
+            )
+    return path
+
+
+def _tissue_tags(field_data: dict) -> dict[int, int]:
+    """Map Gmsh physical tags to Tissue values through 3D physical names that are tissues."""
+    mapping = {}
+    for name, value in field_data.items():
+        value = np.asarray(value).ravel()
+        if value.size >= 2 and int(value[1]) != 3:
+            continue
+        try:
+            tissue = Tissue.parse(str(name))
+        except ValueError:
+            continue
+        if tissue != Tissue.BACKGROUND:
+            mapping[int(value[0])] = int(tissue)
+    return mapping
+
+
+def _mesh_from_meshio(path: Path, ext: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    said = stdio.StringIO()
+    try:
+        # meshio prints its reasons and calls sys.exit(1) when no reader accepts the file.
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            m = meshio.read(path, file_format="gmsh" if ext == ".msh" else "vtu")
+    except (Exception, SystemExit) as e:  # ReadError, ValueError, KeyError, ... and exit
+        why = " ".join(said.getvalue().split()) or f"{type(e).__name__}: {e}"
+        raise ValueError(
+            f"{str(path)!r} could not be read as a {ext} mesh ({why}); check that the file is "
+            "complete and in the format its extension says."
+        ) from e
+    blocks = [i for i, c in enumerate(m.cells) if c.type == "tetra"]
+    if not blocks:
+        raise ValueError(
+            f"{str(path)!r} has no linear tetrahedra (cell types: "
+            f"{sorted({c.type for c in m.cells}) or 'none'}); jaxhead needs a 'tetra' mesh."
+        )
+    tets = np.concatenate([m.cells[i].data for i in blocks])
+    key = "gmsh:physical" if ext == ".msh" else "tissue"
+    if key not in m.cell_data:
+        raise ValueError(
+            f"{str(path)!r} has no cell data {key!r} giving each tet's tissue (it has "
+            f"{sorted(m.cell_data) or 'none'}); label the tets with Tissue values 1..4."
+        )
+    labels = np.concatenate([np.asarray(m.cell_data[key][i]).ravel() for i in blocks]).astype(np.int64)
+    if ext == ".msh":
+        tag_map = _tissue_tags(m.field_data)
+        if tag_map:
+            unknown = sorted(set(np.unique(labels).tolist()) - set(tag_map))
+            if unknown:
+                raise ValueError(
+                    f"{str(path)!r}: physical tags {unknown} have no tissue name; name every "
+                    "volume group BRAIN, CSF, SKULL or SCALP."
+                )
+            labels = np.vectorize(tag_map.get, otypes=[np.int64])(labels)
+    return np.asarray(m.points, dtype=np.float64), tets, labels
+
+
+def _mesh_from_mat(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    try:
+        d = scipy.io.loadmat(path, appendmat=False)
+    except Exception as e:  # scipy raises ValueError, TypeError, MatReadError on bad files
+        raise ValueError(
+            f"{str(path)!r} could not be read as a MATLAB .mat file ({type(e).__name__}: {e})."
+        ) from e
+
+    def get(*names):
+        for n in names:
+            if n in d:
+                return np.asarray(d[n])
+        found = sorted(k for k in d if not k.startswith("__"))
+        raise ValueError(
+            f"{str(path)!r} has no variable {' or '.join(map(repr, names))} (it has {found}); "
+            "a jaxhead .mat mesh holds node (n,3), element (m,4) 1-based and tissue (m,1)."
+        )
+
+    nodes = get("node", "nodes")
+    elements = get("element", "elements", "elems")
+    labels = get("tissue").ravel()
+    if elements.ndim != 2 or elements.shape[1] != 4:
+        raise ValueError(f"{str(path)!r}: `element` must be (n_tets, 4), got {elements.shape}.")
+    if elements.size and (not np.all(elements == np.round(elements)) or elements.min() < 1):
+        raise ValueError(
+            f"{str(path)!r}: `element` must hold 1-based integer node indices (MATLAB "
+            f"convention); its minimum is {elements.min()}. Add 1 to 0-based indices."
+        )
+    if not np.all(labels == np.round(labels)):
+        raise ValueError(f"{str(path)!r}: `tissue` must hold integer Tissue values 1..4.")
+    return nodes.astype(np.float64), elements.astype(np.int64) - 1, labels.astype(np.int64)
+
+
+def load_mesh(path: str | os.PathLike, *, reorient: bool = False) -> TetMesh:
+    """Read a TetMesh written by :func:`save_mesh` (or another tool, in the same layout).
+
+    For ``.msh``, tissues come from the physical tags (``gmsh:physical``); if the file names its
+    3D physical groups after tissues (BRAIN, CSF, SKULL, SCALP, any case), tags are mapped
+    through those names, so files numbering their groups differently load correctly.
+    Gmsh 2.2, 4.0 and 4.1 files are read (meshio).
+
+    Arguments:
+        path: ``.msh``, ``.vtu`` or ``.mat``.
+        reorient: fix negatively oriented tets by swapping two nodes (the count is logged);
+            by default such a file is rejected.
+
+    Returns:
+        TetMesh with nodes (n_nodes, 3) mm, tets (n_tets, 4) 0-based, labels (n_tets,).
+    """
+    path = Path(path)
+    ext = _ext(path, MESH_EXTENSIONS, "mesh")
+    if not path.is_file():
+        raise FileNotFoundError(f"{str(path)!r}: no such file; check the path.")
+    nodes, tets, labels = _mesh_from_mat(path) if ext == ".mat" else _mesh_from_meshio(path, ext)
+    if reorient and nodes.ndim == 2 and nodes.shape[1] == 3 and tets.size:
+        tets, n_flipped = orient_tets(nodes, tets)
+        if n_flipped:
+            log.info("%s: reoriented %d of %d tets", path, n_flipped, len(tets))
+    try:
+        return TetMesh(nodes, tets, labels)
+    except ValueError as e:
+        hint = "" if reorient else " (pass reorient=True to fix the tets' orientation)"
+        raise ValueError(f"{str(path)!r}: {e}{hint if 'oriented' in str(e) else ''}") from e
+
+
+# ---------------------------------------------------------------------------------------------
+# Surfaces
+# ---------------------------------------------------------------------------------------------
+
+
+def save_surface(surface: Surface, path: str | os.PathLike) -> Path:
+    """Write a Surface via trimesh; the extension picks the format. Atomic.
+
+    ``.stl`` is binary STL (float32 coordinates, vertices not shared); ``.ply`` is binary PLY
+    (float32 coordinates); ``.obj`` is text with 8 decimals. Face winding (outward normals) is
+    kept by all three.
+
+    Arguments:
+        surface: the surface (vertices in mm).
+        path: target file.
+
+    Returns:
+        the path written.
+    """
+    if not isinstance(surface, Surface):
+        raise TypeError(f"save_surface needs a Surface, got {type(surface).__name__}.")
+    path = Path(path)
+    ext = _ext(path, SURFACE_EXTENSIONS, "surface")
+    tm = trimesh.Trimesh(surface.vertices, surface.faces, process=False)
+    with atomic_write_path(path) as tmp:
+        tm.export(file_obj=str(tmp), file_type=ext[1:])
+    return path
+
+
+def load_surface(path: str | os.PathLike, tissue: Tissue | str | int) -> Surface:
+    """Read a triangle surface via trimesh, as the outer surface of `tissue`'s nested solid.
+
+    STL stores no shared vertices: coincident vertices are merged (trimesh.merge_vertices)
+    so that the result is an indexed, connected surface. Vertex order and faces are otherwise
+    kept as stored.
+
+    Arguments:
+        path: ``.stl``, ``.ply`` or ``.obj``.
+        tissue: the Tissue the surface bounds (name, value or Tissue).
+
+    Returns:
+        Surface with vertices (n_verts, 3) mm and faces (n_faces, 3).
+    """
+    path = Path(path)
+    ext = _ext(path, SURFACE_EXTENSIONS, "surface")
+    tissue = Tissue.parse(tissue)
+    if not path.is_file():
+        raise FileNotFoundError(f"{str(path)!r}: no such file; check the path.")
+    try:
+        tm = trimesh.load(str(path), file_type=ext[1:], force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types on malformed files
+        raise ValueError(
+            f"{str(path)!r} could not be read as {ext} ({type(e).__name__}: {e})."
+        ) from e
+    if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
+        raise ValueError(f"{str(path)!r} holds no triangles; pass a triangle surface file.")
+    if ext == ".stl":
+        tm.merge_vertices()
+    try:
+        return Surface(np.asarray(tm.vertices), np.asarray(tm.faces), tissue)
+    except ValueError as e:
+        raise ValueError(f"{str(path)!r}: {e}") from e
+
