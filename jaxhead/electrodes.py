@@ -18,7 +18,7 @@ import numpy as np
 from .mesh import TetMesh
 
 #: Default contact impedance in Ohm m^2 (see `place_electrodes`).
-DEFAULT_CONTACT_IMPEDANCE_OHM_M2 = 1e-2
+DEFAULT_CONTACT_IMPEDANCE_OHM_M2 = 0.02
 
 
 def _is_tracer(x) -> bool:
@@ -167,6 +167,49 @@ class _Scalp:
         p, d, f = closest_point(self.tm, np.asarray(points, dtype=np.float64))
         return np.asarray(p), np.asarray(d), np.asarray(f, dtype=np.int64)
 
+    def ray_hits(self, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Farthest scalp hit of rays from `origin` (inside the head): (k, 3), NaN where missed.
+
+        Moeller & Trumbore (1997) ray-triangle tests against the faces whose direction from
+        `origin` is within their own angular radius of the ray (a KD-tree on unit vectors).
+        """
+        from scipy.spatial import cKDTree
+
+        o = np.asarray(origin, dtype=np.float64)
+        d = np.asarray(directions, dtype=np.float64)
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        tri = self.tm.triangles - o  # (n_faces, 3, 3) relative to the origin
+        cen = tri.mean(axis=1)
+        cdir = cen / np.linalg.norm(cen, axis=1, keepdims=True)
+        vdir = tri / np.linalg.norm(tri, axis=2, keepdims=True)
+        chord = np.linalg.norm(vdir - cdir[:, None], axis=2).max()
+        cand = cKDTree(cdir).query_ball_point(d, r=chord * (1 + 1e-9) + 1e-12)
+        ray = np.repeat(np.arange(len(d)), [len(c) for c in cand])
+        face = np.fromiter((f for c in cand for f in c), dtype=np.int64, count=len(ray))
+        out = np.full(d.shape, np.nan)
+        if face.size == 0:
+            return out
+        v0, v1, v2 = tri[face, 0], tri[face, 1], tri[face, 2]
+        e1, e2, dr = v1 - v0, v2 - v0, d[ray]
+        pv = np.cross(dr, e2)
+        det = np.einsum("ij,ij->i", e1, pv)
+        ok = np.abs(det) > 1e-12 * np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        tv = -v0  # ray origin (0) minus v0
+        u = np.einsum("ij,ij->i", tv, pv) * inv
+        qv = np.cross(tv, e1)
+        v = np.einsum("ij,ij->i", dr, qv) * inv
+        t = np.einsum("ij,ij->i", e2, qv) * inv
+        eps = 1e-9
+        hit = ok & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps) & (t > 0)
+        if not hit.any():
+            return out
+        best = np.full(len(d), -np.inf)
+        np.maximum.at(best, ray[hit], t[hit])
+        good = np.isfinite(best)
+        out[good] = o + d[good] * best[good, None]
+        return out
+
     def disc(self, centre: np.ndarray, face0: int, radius: float) -> np.ndarray:
         """Faces edge-connected to `face0` whose centroid is within `radius` of `centre`."""
         inside = np.linalg.norm(self.centroids - centre, axis=1) <= radius
@@ -204,23 +247,51 @@ def place_electrodes(
     radius_mm=5.0,
     contact_impedance=DEFAULT_CONTACT_IMPEDANCE_OHM_M2,
     names=None,
+    landmarks=None,
     max_distance_mm: float = 10.0,
 ) -> Electrodes:
     """Place disc electrodes on the scalp (outer boundary) of a mesh.
 
+    Each electrode is the set of outer-boundary faces whose centroid lies within `radius_mm`
+    (3D distance) of the centre projected onto the scalp, grown from the face under the centre
+    through shared edges. The face under the centre is always included; if no other centroid is
+    inside the radius (mesh too coarse), a warning says so. Areas therefore match pi r^2 only
+    to within the boundary mesh size.
+
     Arguments:
         mesh: the head TetMesh; its outer boundary is the scalp.
-        positions: (n_elec, 3) electrode positions in world mm, projected onto the scalp.
+        positions: one of
+            - (n_elec, 3) world mm (e.g. digitised), projected onto the scalp;
+            - a layout name "10-20" (21 electrodes) or "10-10" (61), or a list of 10-10 names
+              (see `layout_positions`);
+            - an int: that many electrodes spread over the upper head (`spread_positions`).
         radius_mm: electrode radius in mm, one value or (n_elec,).
-        contact_impedance: contact impedance in Ohm m^2, one value or (n_elec,). The default
-            1e-2 Ohm m^2 is 1 kOhm over a 1 cm^2 electrode, the range of gelled Ag/AgCl scalp
-            electrodes (EEG practice keeps skin contact below 5 kOhm).
-        names: optional electrode names (default "E1".."En").
+        contact_impedance: contact impedance in Ohm m^2, one value or (n_elec,). Default
+            0.02 Ohm m^2: McEwan et al. 2006 (Physiol. Meas. 27:S199, UCLH Mk2.5 head EIT)
+            measured 300 Ohm - 2.7 kOhm per scalp electrode over 20 Hz - 256 kHz; over a
+            10 mm-diameter EEG cup (0.785 cm^2) that is 0.024 - 0.21 Ohm m^2, the low end at
+            EIT frequencies. Cheng et al. 1989 (IEEE TBME 36:918) fitted 7.5e-4 - 5.8e-3
+            Ohm m^2 for metal electrodes in saline.
+        names: optional names for (n_elec, 3) positions (default "E1".."En"; layouts name
+            their electrodes).
+        landmarks: for layouts and counts: dict "nasion", "inion", "lpa", "rpa" of world mm;
+            estimated from the scalp shape when omitted (`estimate_landmarks`, RAS assumed).
         max_distance_mm: positions farther than this from the scalp are an error.
 
     Returns:
         Electrodes with centres on the scalp and the boundary faces under each disc.
     """
+    scalp = _Scalp(mesh)
+    if isinstance(positions, str) or (
+            isinstance(positions, (list, tuple)) and positions
+            and all(isinstance(p, str) for p in positions)):
+        if names is not None:
+            raise ValueError("`names` is only for coordinate positions; layouts name their "
+                             "electrodes.")
+        names, positions = _layout(scalp, _layout_names(positions), landmarks)
+    elif isinstance(positions, (int, np.integer)) and not isinstance(positions, bool):
+        _check_count(positions, 72.0)
+        positions = _spread(scalp, int(positions), landmarks, 72.0)
     pos = np.asarray(positions, dtype=np.float64)
     if pos.ndim != 2 or pos.shape[1] != 3 or pos.shape[0] == 0:
         raise ValueError(
@@ -234,7 +305,6 @@ def place_electrodes(
     radius = _per_electrode(radius_mm, n, "radius_mm", "mm")
     z = _per_electrode(contact_impedance, n, "contact_impedance", "Ohm m^2")
 
-    scalp = _Scalp(mesh)
     centres, dist, face0 = scalp.project(pos)
     far = np.flatnonzero(dist > max_distance_mm)
     if far.size:
@@ -270,3 +340,279 @@ def _check_overlap(centres: np.ndarray, radius: np.ndarray, names) -> None:
         raise ValueError(
             f"electrodes overlap (centres closer than the sum of their radii): {desc}; "
             "move them apart or reduce radius_mm.")
+
+
+# --------------------------------------------------------------------------------------------
+# Landmarks and the head frame
+
+#: Landmark keys; aliases accepted by `_parse_landmarks`.
+LANDMARKS = ("nasion", "inion", "lpa", "rpa")
+_LANDMARK_ALIASES = {"nz": "nasion", "iz": "inion", "lpa": "lpa", "rpa": "rpa",
+                     "nasion": "nasion", "inion": "inion", "al": "lpa", "ar": "rpa",
+                     "left": "lpa", "right": "rpa"}
+
+
+def _parse_landmarks(landmarks) -> dict[str, np.ndarray]:
+    if not isinstance(landmarks, dict):
+        raise ValueError(
+            f"`landmarks` must be a dict of mm coordinates with keys {LANDMARKS}, "
+            f"got {type(landmarks).__name__}.")
+    out = {}
+    for k, v in landmarks.items():
+        key = _LANDMARK_ALIASES.get(str(k).lower())
+        if key is None:
+            raise ValueError(f"unknown landmark {k!r}; use {LANDMARKS}.")
+        p = np.asarray(v, dtype=np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise ValueError(f"landmark {k!r} must be 3 finite mm coordinates, got {v!r}.")
+        out[key] = p
+    missing = [k for k in LANDMARKS if k not in out]
+    if missing:
+        raise ValueError(f"`landmarks` lacks {missing}; give all of {LANDMARKS} (world mm).")
+    return out
+
+
+def _fit_sphere(p: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares sphere |p - c|^2 = R^2, linear in (c, R^2 - |c|^2)."""
+    a = np.c_[2 * p, np.ones(len(p))]
+    sol, *_ = np.linalg.lstsq(a, (p**2).sum(1), rcond=None)
+    c = sol[:3]
+    return c, float(np.sqrt(sol[3] + c @ c))
+
+
+def estimate_landmarks(mesh: TetMesh) -> dict[str, np.ndarray]:
+    """Estimate nasion, inion and pre-auricular points from the scalp shape (RAS frame).
+
+    Assumes the mesh is in a RAS world frame (x right, y anterior, z superior), as NIfTI
+    images are. A sphere is fitted (least squares) to the scalp nodes of the upper head,
+    z >= z_max - (x_max - x_min) / 2 (for a sphere of radius R: the upper hemisphere; for a head
+    with a neck: the part above roughly the ears). The landmarks are where rays from the fitted
+    centre along -x (LPA), +x (RPA), +y (nasion) and -y (inion) leave the scalp. This is a
+    crude estimate (on real heads nasion and inion come out ~1-2 cm off); pass measured
+    landmarks when they are known.
+
+    Returns:
+        dict with keys "nasion", "inion", "lpa", "rpa": (3,) mm coordinates on the scalp.
+    """
+    return _estimate_landmarks(_Scalp(mesh))
+
+
+def _estimate_landmarks(scalp: _Scalp) -> dict[str, np.ndarray]:
+    v = scalp.tm.vertices
+    upper = v[v[:, 2] >= v[:, 2].max() - 0.5 * np.ptp(v[:, 0])]
+    c, _ = _fit_sphere(upper)
+    dirs = np.array([[0.0, 1, 0], [0, -1, 0], [-1, 0, 0], [1, 0, 0]])
+    hits = scalp.ray_hits(c, dirs)
+    if np.isnan(hits).any():
+        raise ValueError(
+            "could not estimate landmarks: rays from the fitted head centre miss the scalp; "
+            "pass `landmarks` (nasion, inion, lpa, rpa in world mm).")
+    return dict(zip(("nasion", "inion", "lpa", "rpa"), hits))
+
+
+class _HeadFrame:
+    """Landmarks on the scalp, head centre (midpoint of LPA-RPA) and RAS-like axes."""
+
+    def __init__(self, scalp: _Scalp, landmarks: dict[str, np.ndarray]):
+        p, _, _ = scalp.project(np.stack([landmarks[k] for k in LANDMARKS]))
+        self.nz, self.iz, self.lpa, self.rpa = p
+        self.centre = 0.5 * (self.lpa + self.rpa)
+        ex = self.rpa - self.lpa
+        ex /= np.linalg.norm(ex)
+        ey = self.nz - self.centre
+        ey -= ex * (ey @ ex)
+        if np.linalg.norm(ey) < 1e-6:
+            raise ValueError("landmarks are degenerate: the nasion lies on the LPA-RPA line.")
+        ey /= np.linalg.norm(ey)
+        self.axes = np.stack([ex, ey, np.cross(ex, ey)])  # rows: right, anterior, superior
+
+
+def _arc(scalp: _Scalp, origin, a, b, via, n: int = 721):
+    """The scalp curve from a through via to b in their plane: (points (n,3), arclength (n,)).
+
+    The curve is traced by rays from `origin` projected into the plane (Oostenveld & Praamstra
+    2001 define 10-10 positions by dividing such curves on the scalp into equal lengths).
+    """
+    a, b, via = (np.asarray(x, dtype=np.float64) for x in (a, b, via))
+    normal = np.cross(via - a, b - a)
+    normal /= np.linalg.norm(normal)
+    o = origin - normal * ((origin - a) @ normal)
+    e1 = (a - o) / np.linalg.norm(a - o)
+    e2 = np.cross(normal, e1)
+    if (via - o) @ e2 < 0:
+        e2 = -e2
+    ang_via = np.arctan2((via - o) @ e2, (via - o) @ e1) % (2 * np.pi)
+    ang_b = np.arctan2((b - o) @ e2, (b - o) @ e1) % (2 * np.pi)
+    if not ang_via < ang_b:
+        raise ValueError("scalp arc construction failed: the landmarks are not ordered around "
+                         "the head; check the landmark coordinates.")
+    t = np.linspace(0.0, ang_b, n)
+    pts = scalp.ray_hits(o, np.cos(t)[:, None] * e1 + np.sin(t)[:, None] * e2)
+    if np.isnan(pts).any():
+        raise ValueError("scalp arc construction failed: rays from the head centre miss the "
+                         "scalp; is the mesh closed and are the landmarks right?")
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))]
+    return pts, s
+
+
+def _at(pts, s, fractions, s0=0.0, s1=None):
+    s1 = s[-1] if s1 is None else s1
+    q = s0 + np.asarray(fractions, dtype=np.float64) * (s1 - s0)
+    return np.stack([np.interp(q, s, pts[:, k]) for k in range(3)], axis=1)
+
+
+def _ten_ten(scalp: _Scalp, frame: _HeadFrame) -> dict[str, np.ndarray]:
+    """All 61 positions of the 10-10 system at or above the 10 % circumference ring."""
+    c = frame.centre
+    fr = np.arange(1, 10) / 10.0
+    cz = scalp.ray_hits(c, frame.axes[2][None])[0]
+    for _ in range(10):  # make Cz the midpoint of both the midline and the coronal arc
+        mid, smid = _arc(scalp, c, frame.nz, frame.iz, cz)
+        cz_m = _at(mid, smid, [0.5])[0]
+        cor, scor = _arc(scalp, c, frame.lpa, frame.rpa, cz_m)
+        cz = _at(cor, scor, [0.5])[0]
+        if np.linalg.norm(cz - cz_m) < 0.05:
+            break
+    out = dict(zip(["Fpz", "AFz", "Fz", "FCz", "Cz", "CPz", "Pz", "POz", "Oz"],
+                   _at(mid, smid, fr)))
+    out.update(zip(["T7", "C5", "C3", "C1", "_", "C2", "C4", "C6", "T8"], _at(cor, scor, fr)))
+    del out["_"]
+    ring = ["Fp", "AF", "F", "FT", "T", "TP", "P", "PO", "O"]
+    for side, via, num in (("L", out["T7"], "7"), ("R", out["T8"], "8")):
+        pts, s = _arc(scalp, c, out["Fpz"], out["Oz"], via)
+        p = _at(pts, s, fr)
+        names = [f"{r}{num}" for r in ring]
+        names[0] = "Fp1" if side == "L" else "Fp2"
+        names[-1] = "O1" if side == "L" else "O2"
+        for nm, q in zip(names, p):
+            if nm not in ("T7", "T8"):  # T7/T8 come from the coronal arc
+                out[nm] = q
+    rows = {"AF": [(0.5, "3", "4")],
+            "F": [(0.25, "5", "6"), (0.5, "3", "4"), (0.75, "1", "2")],
+            "FC": [(0.25, "5", "6"), (0.5, "3", "4"), (0.75, "1", "2")],
+            "CP": [(0.25, "5", "6"), (0.5, "3", "4"), (0.75, "1", "2")],
+            "P": [(0.25, "5", "6"), (0.5, "3", "4"), (0.75, "1", "2")],
+            "PO": [(0.5, "3", "4")]}
+    lateral = {"AF": "AF", "F": "F", "FC": "FT", "CP": "TP", "P": "P", "PO": "PO"}
+    for row, items in rows.items():
+        left, right, m = out[f"{lateral[row]}7"], out[f"{lateral[row]}8"], out[f"{row}z"]
+        pts, s = _arc(scalp, c, left, right, m)
+        sm = s[np.argmin(np.linalg.norm(pts - m, axis=1))]
+        for f, ln, rn in items:
+            out[f"{row}{ln}"] = _at(pts, s, [f], 0.0, sm)[0]
+            out[f"{row}{rn}"] = _at(pts, s, [1.0 - f], sm, s[-1])[0]
+    return out
+
+
+#: The 21 positions of the 10-20 system on the scalp (Jasper 1958; modern names, ACNS 2006:
+#: T7/T8/P7/P8 for the old T3/T4/T5/T6). The ear electrodes A1/A2 are not on a scalp mesh, so
+#: Fpz and Oz complete the 21.
+TEN_TWENTY = ("Fp1", "Fpz", "Fp2", "F7", "F3", "Fz", "F4", "F8", "T7", "C3", "Cz", "C4", "T8",
+              "P7", "P3", "Pz", "P4", "P8", "O1", "Oz", "O2")
+
+#: The 61 positions of the 10-10 system at or above the 10 % ring (Fp/AF7/F7/FT7/T7/...):
+#: Oostenveld & Praamstra 2001 (Clin. Neurophysiol. 112:713), ACNS guideline 5 (2006). The
+#: lower ring (F9, T9, ...) and Nz/Iz are left out: they sit at ear level, where head meshes
+#: are often truncated.
+TEN_TEN = ("Fp1", "Fpz", "Fp2",
+           "AF7", "AF3", "AFz", "AF4", "AF8",
+           "F7", "F5", "F3", "F1", "Fz", "F2", "F4", "F6", "F8",
+           "FT7", "FC5", "FC3", "FC1", "FCz", "FC2", "FC4", "FC6", "FT8",
+           "T7", "C5", "C3", "C1", "Cz", "C2", "C4", "C6", "T8",
+           "TP7", "CP5", "CP3", "CP1", "CPz", "CP2", "CP4", "CP6", "TP8",
+           "P7", "P5", "P3", "P1", "Pz", "P2", "P4", "P6", "P8",
+           "PO7", "PO3", "POz", "PO4", "PO8",
+           "O1", "Oz", "O2")
+
+LAYOUTS = {"10-20": TEN_TWENTY, "10-10": TEN_TEN}
+_OLD_NAMES = {"T3": "T7", "T4": "T8", "T5": "P7", "T6": "P8"}
+
+
+def layout_positions(mesh: TetMesh, layout="10-20", *, landmarks=None):
+    """Positions of a standard EEG layout on the scalp of a mesh.
+
+    Positions follow Oostenveld & Praamstra (2001): the midline (nasion-Cz-inion) and coronal
+    (LPA-Cz-RPA) scalp arcs are cut at 10 % steps, with Cz iterated to be the midpoint of both;
+    the 10 % ring through Fpz, T7/T8 and Oz is cut at 10 % of each half; the F/FC/CP/P rows are
+    the arcs through (lateral, midline, lateral) points cut into quarters of each half.
+
+    Arguments:
+        mesh: the head TetMesh.
+        layout: "10-20" (21 positions), "10-10" (61), or a sequence of names from the 10-10
+            system (old names T3/T4/T5/T6 are accepted and mapped to T7/T8/P7/P8).
+        landmarks: dict of world-mm coordinates "nasion", "inion", "lpa", "rpa" (projected
+            onto the scalp); by default estimated with `estimate_landmarks` (RAS assumed).
+
+    Returns:
+        names: tuple of electrode names; positions: (n_elec, 3) mm on the scalp.
+    """
+    return _layout(_Scalp(mesh), _layout_names(layout), landmarks)
+
+
+def _layout_names(layout) -> tuple[str, ...]:
+    if isinstance(layout, str):
+        if layout not in LAYOUTS:
+            raise ValueError(f"unknown layout {layout!r}; use one of {list(LAYOUTS)} or a list "
+                             "of 10-10 electrode names.")
+        names = LAYOUTS[layout]
+    else:
+        names = tuple(str(n) for n in layout)
+        if not names:
+            raise ValueError("`layout` is an empty list of names.")
+    lookup = {n.lower() for n in TEN_TEN}
+    bad = [n for n in names if _OLD_NAMES.get(n, n).lower() not in lookup]
+    if bad:
+        raise ValueError(f"unknown electrode names {bad}; use 10-10 names such as {TEN_TEN[:6]}.")
+    return names
+
+
+def _layout(scalp: _Scalp, names, landmarks):
+    canon = [_OLD_NAMES.get(n, n) for n in names]
+    lookup = {n.lower(): n for n in TEN_TEN}
+    lm = _parse_landmarks(landmarks) if landmarks is not None else _estimate_landmarks(scalp)
+    pos = _ten_ten(scalp, _HeadFrame(scalp, lm))
+    return tuple(names), np.stack([pos[lookup[n.lower()]] for n in canon])
+
+
+def spread_positions(mesh: TetMesh, n_elec: int, *, landmarks=None,
+                     max_polar_deg: float = 72.0) -> np.ndarray:
+    """`n_elec` positions spread evenly over the upper head.
+
+    A Fibonacci spiral (equal-area points: cos(polar) uniform, azimuth stepped by the golden
+    angle; Gonzalez 2010, Math. Geosci. 42:49) on the cap of polar angle <= `max_polar_deg`
+    around the head's superior axis, cast as rays from the head centre (midpoint of the
+    pre-auricular points) onto the scalp. 72 deg is the 10 % ring of the 10-20 system on a
+    sphere (Fpz, T7, Oz lie at 90 - 18 deg from the vertex).
+
+    Arguments:
+        mesh: the head TetMesh.
+        n_elec: number of electrodes (>= 1).
+        landmarks: as in `layout_positions` (defines centre and axes).
+        max_polar_deg: cap half-angle in degrees from the vertex, 0 < . <= 180.
+
+    Returns:
+        (n_elec, 3) positions in mm on the scalp, the first nearest the vertex.
+    """
+    _check_count(n_elec, max_polar_deg)
+    return _spread(_Scalp(mesh), n_elec, landmarks, max_polar_deg)
+
+
+def _check_count(n_elec, max_polar_deg) -> None:
+    if isinstance(n_elec, bool) or not isinstance(n_elec, (int, np.integer)) or n_elec < 1:
+        raise ValueError(f"electrode count must be a positive int, got {n_elec!r}.")
+    if not 0.0 < max_polar_deg <= 180.0:
+        raise ValueError(f"`max_polar_deg` must be in (0, 180], got {max_polar_deg}.")
+
+
+def _spread(scalp: _Scalp, n_elec: int, landmarks, max_polar_deg: float) -> np.ndarray:
+    lm = _parse_landmarks(landmarks) if landmarks is not None else _estimate_landmarks(scalp)
+    frame = _HeadFrame(scalp, lm)
+    i = np.arange(n_elec) + 0.5
+    cos_t = 1.0 - (1.0 - np.cos(np.radians(max_polar_deg))) * i / n_elec
+    sin_t = np.sqrt(1.0 - cos_t**2)
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * np.arange(n_elec)
+    local = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=1)
+    hits = scalp.ray_hits(frame.centre, local @ frame.axes)
+    if np.isnan(hits).any():
+        raise ValueError("rays from the head centre miss the scalp; pass `landmarks`.")
+    return hits
