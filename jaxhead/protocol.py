@@ -1,0 +1,246 @@
+"""Injection/measurement protocols: rows of [source, sink, meas+, meas-].  [host]
+
+A protocol row says: inject `current_a` amperes into electrode `source` and out of `sink`, and
+measure the voltage V[meas+] - V[meas-]. This is the format of UCL's head-EIT protocol files
+(an (n_rows, 4) matrix [inj+, inj-, meas+, meas-], 1-based in Matlab). Inside jaxhead all
+electrode indices are 0-based (electrode i is `Electrodes.centres[i]`); CSV files are 1-based
+by default, as UCL writes them (`one_based=False` reads or writes 0-based files).
+
+Injections are ordered (source, sink) pairs: (a, b) and (b, a) are distinct injections (the
+second is the negated current pattern), kept in order of first appearance.
+"""
+
+from __future__ import annotations
+
+import os
+
+import equinox as eqx
+import numpy as np
+
+#: Default injected current in A: 100 uA. IEC 60601-1 limits the patient auxiliary current to
+#: 100 uA below 1 kHz (rising as f/1 kHz above it, to 10 mA at 100 kHz), so 100 uA is within
+#: the limit at any frequency. Voltages are linear in the current: pass the current your
+#: system injects (head-EIT systems use tens of uA to ~1 mA depending on frequency).
+DEFAULT_CURRENT_A = 100e-6
+
+_HEADER = "source,sink,meas_plus,meas_minus"
+
+
+class Protocol(eqx.Module):
+    """A list of drive/measurement electrode quadruples and the drive current.
+
+    Arguments:
+        rows: (n_rows, 4) int64, 0-based electrode indices [source, sink, meas+, meas-]:
+            current `current_a` enters at `source` and leaves at `sink`; the row's datum is
+            V[meas+] - V[meas-] in volts.
+        current_a: injected current in A (> 0).
+    """
+
+    rows: np.ndarray
+    current_a: float = eqx.field(static=True, default=DEFAULT_CURRENT_A)
+
+    def __init__(self, rows, current_a: float = DEFAULT_CURRENT_A):
+        r = np.asarray(rows)
+        if r.size and not np.issubdtype(r.dtype, np.integer):
+            if not np.issubdtype(r.dtype, np.number) or not np.all(r == np.round(r)):
+                raise ValueError(f"`rows` must hold integer electrode indices, got dtype {r.dtype}.")
+        self.rows = r.astype(np.int64).reshape(r.shape)
+        self.current_a = float(current_a)
+
+    def __check_init__(self):
+        r = self.rows
+        if r.ndim != 2 or r.shape[1] != 4 or r.shape[0] == 0:
+            raise ValueError(
+                f"`rows` must have shape (n_rows, 4) = [source, sink, meas+, meas-], n_rows >= 1; "
+                f"got {r.shape}.")
+        if r.min() < 0:
+            bad = np.flatnonzero((r < 0).any(axis=1))
+            raise ValueError(
+                f"`rows` {bad[:10].tolist()} have negative electrode indices; indices are "
+                "0-based (use Protocol.from_csv(..., one_based=True) for 1-based files).")
+        same = np.flatnonzero(r[:, 0] == r[:, 1])
+        if same.size:
+            raise ValueError(f"`rows` {same[:10].tolist()} have source == sink; a drive pair "
+                             "needs two different electrodes.")
+        same = np.flatnonzero(r[:, 2] == r[:, 3])
+        if same.size:
+            raise ValueError(f"`rows` {same[:10].tolist()} have meas+ == meas-; a measurement "
+                             "needs two different electrodes.")
+        if not np.isfinite(self.current_a) or self.current_a <= 0:
+            raise ValueError(f"`current_a` must be finite and > 0 A, got {self.current_a}.")
+
+    @property
+    def n_rows(self) -> int:
+        return self.rows.shape[0]
+
+    @property
+    def injections(self) -> np.ndarray:
+        """Unique (source, sink) pairs in order of first appearance, (n_inj, 2) int64."""
+        return self._drives()[0]
+
+    @property
+    def drive_index(self) -> np.ndarray:
+        """Index into `injections` of each row's drive pair, (n_rows,) int64."""
+        return self._drives()[1]
+
+    @property
+    def n_inj(self) -> int:
+        return self.injections.shape[0]
+
+    @property
+    def measurements(self) -> np.ndarray:
+        """(meas+, meas-) of each row, (n_rows, 2) int64."""
+        return self.rows[:, 2:]
+
+    def _drives(self) -> tuple[np.ndarray, np.ndarray]:
+        pairs = self.rows[:, :2]
+        uniq, first, inv = np.unique(pairs, axis=0, return_index=True, return_inverse=True)
+        order = np.argsort(first)  # unique pairs sorted by first appearance
+        rank = np.empty_like(order)
+        rank[order] = np.arange(order.size)
+        return uniq[order], rank[inv.ravel()].astype(np.int64)
+
+    def check(self, n_elec: int) -> Protocol:
+        """Raise ValueError unless every index is < n_elec; returns self."""
+        if int(n_elec) < 2:
+            raise ValueError(f"`n_elec` must be >= 2, got {n_elec}.")
+        bad = np.flatnonzero((self.rows >= n_elec).any(axis=1))
+        if bad.size:
+            raise ValueError(
+                f"protocol rows {bad[:10].tolist()} use electrode indices up to "
+                f"{self.rows.max()} but there are {n_elec} electrodes (0-based indices "
+                f"0..{n_elec - 1}); is the protocol 1-based or meant for another montage?")
+        return self
+
+    @classmethod
+    def from_csv(cls, path, *, current_a: float | None = None, one_based: bool = True) -> Protocol:
+        """Read a protocol from a CSV (or whitespace) file of 4 integer columns.
+
+        A header line (any non-numeric first line) is skipped; a comment line
+        ``# current_a = <A>`` (written by `to_csv`) sets the current unless `current_a` is given.
+
+        Arguments:
+            path: file with columns source, sink, meas+, meas- (UCL order).
+            current_a: injected current in A; default: the file's comment, else 100 uA.
+            one_based: indices in the file start at 1 (UCL/Matlab; default) or at 0.
+        """
+        text = open(os.fspath(path), encoding="utf-8").read()
+        file_current, data = None, []
+        for lineno, line in enumerate(text.splitlines(), 1):
+            s = line.strip()
+            if not s:
+                continue
+            if s.startswith("#"):
+                key, _, val = s[1:].partition("=")
+                if key.strip() == "current_a":
+                    file_current = float(val)
+                continue
+            parts = [p for p in s.replace(",", " ").replace(";", " ").split()]
+            try:
+                vals = [float(p) for p in parts]
+            except ValueError:
+                if not data:  # header
+                    continue
+                raise ValueError(f"{path}:{lineno}: not numbers: {line!r}.") from None
+            if len(vals) != 4:
+                raise ValueError(f"{path}:{lineno}: expected 4 columns (source, sink, meas+, "
+                                 f"meas-), got {len(vals)}: {line!r}.")
+            data.append(vals)
+        if not data:
+            raise ValueError(f"{path}: no protocol rows found.")
+        rows = np.asarray(data)
+        if not np.all(rows == np.round(rows)):
+            raise ValueError(f"{path}: electrode indices must be integers.")
+        rows = rows.astype(np.int64)
+        if one_based:
+            if rows.min() < 1:
+                raise ValueError(f"{path}: has index {rows.min()} but one_based=True; pass "
+                                 "one_based=False for 0-based files.")
+            rows = rows - 1
+        cur = current_a if current_a is not None else (
+            file_current if file_current is not None else DEFAULT_CURRENT_A)
+        return cls(rows, cur)
+
+    def to_csv(self, path, *, one_based: bool = True) -> None:
+        """Write the protocol as CSV (header, ``# current_a = ...`` line, 4 int columns).
+
+        Arguments:
+            path: output file (written atomically).
+            one_based: write 1-based indices (UCL/Matlab convention; default) or 0-based.
+        """
+        from .io import atomic_write_path
+
+        rows = self.rows + (1 if one_based else 0)
+        body = "\n".join(",".join(str(int(v)) for v in r) for r in rows)
+        text = f"# current_a = {self.current_a!r}\n{_HEADER}\n{body}\n"
+        with atomic_write_path(path) as tmp:
+            with open(tmp, "w", encoding="utf-8") as f:
+                f.write(text)
+
+
+def _adjacent_meas(n_elec: int, exclude) -> list[tuple[int, int]]:
+    """Adjacent pairs (j, j+1 mod n) that use none of the electrodes in `exclude`."""
+    ex = set(int(e) for e in exclude)
+    return [(j, (j + 1) % n_elec) for j in range(n_elec)
+            if j not in ex and (j + 1) % n_elec not in ex]
+
+
+def _check_n(n_elec, least: int) -> int:
+    if isinstance(n_elec, bool) or not isinstance(n_elec, (int, np.integer)) or n_elec < least:
+        raise ValueError(f"`n_elec` must be an int >= {least}, got {n_elec!r}.")
+    return int(n_elec)
+
+
+def _build(drives, n_elec: int, current_a: float) -> Protocol:
+    rows = [(s, k, mp, mm) for s, k in drives for mp, mm in _adjacent_meas(n_elec, (s, k))]
+    return Protocol(np.asarray(rows, dtype=np.int64), current_a).check(n_elec)
+
+
+def adjacent(n_elec: int, *, current_a: float = DEFAULT_CURRENT_A) -> Protocol:
+    """Adjacent drive, adjacent measurement (Sheffield / EIDORS ``{'ad'}, {'ad'}``).
+
+    Drives (i, i+1 mod n) for i = 0..n-1; for each, measurements V_j - V_{j+1 mod n} on every
+    adjacent pair not touching a drive electrode (EIDORS ``no_meas_current``: the voltage on a
+    current-carrying electrode includes its contact impedance), so n (n - 3) rows.
+
+    Arguments:
+        n_elec: number of electrodes (>= 4), in ring order.
+        current_a: injected current in A.
+    """
+    n = _check_n(n_elec, 4)
+    return _build([(i, (i + 1) % n) for i in range(n)], n, current_a)
+
+
+def opposite(n_elec: int, *, current_a: float = DEFAULT_CURRENT_A) -> Protocol:
+    """Polar/opposite drive (i, i + n//2), adjacent measurements not on drive electrodes.
+
+    For even n the n/2 pairs (i, i + n/2), i < n/2 (the other half would only negate them);
+    for odd n all n pairs (i, i + (n-1)/2 mod n), which are distinct. Each drive measures the
+    n - 4 adjacent pairs that avoid both drive electrodes.
+
+    Arguments:
+        n_elec: number of electrodes (>= 5), in ring order.
+        current_a: injected current in A.
+    """
+    n = _check_n(n_elec, 5)
+    k = n // 2
+    drives = [(i, i + k) for i in range(k)] if n % 2 == 0 else [(i, (i + k) % n) for i in range(n)]
+    return _build(drives, n, current_a)
+
+
+def pair_drive(n_elec: int, source: int, sink: int, *,
+               current_a: float = DEFAULT_CURRENT_A) -> Protocol:
+    """One drive pair, and every adjacent pair (j, j+1 mod n) that avoids it as measurement.
+
+    Arguments:
+        n_elec: number of electrodes (>= 4).
+        source, sink: 0-based drive electrodes (different).
+        current_a: injected current in A.
+    """
+    n = _check_n(n_elec, 4)
+    for name, v in (("source", source), ("sink", sink)):
+        if not 0 <= int(v) < n:
+            raise ValueError(f"`{name}` = {v} is not an electrode index 0..{n - 1}.")
+    if int(source) == int(sink):
+        raise ValueError(f"`source` and `sink` are both {source}; use two electrodes.")
+    return _build([(int(source), int(sink))], n, current_a)
