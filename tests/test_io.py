@@ -1,4 +1,4 @@
-"""Tests of jaxhead.io: image/label/mesh/surface round trips, bad input, resampling, atomic writes."""
+"""Tests of jaxhead.io: round trips, bad input, resampling, mesh/surface exports, atomic writes."""
 
 import gzip
 import logging
@@ -48,7 +48,7 @@ def _affine(codes: str, voxel=(1.0, 1.5, 2.0), origin=(10.0, -20.0, 30.0)) -> np
     return a
 
 
-def _write_nifti(path, data, affine=None, **hdr):
+def _write_nifti(path, data, affine=None):
     img = nib.Nifti1Image(np.asarray(data), np.eye(4) if affine is None else affine)
     img.set_sform(img.affine, code=1)
     img.set_qform(img.affine, code=1)
@@ -108,11 +108,18 @@ def test_savers_leave_no_temp_files(tmp_path, small_mesh):
 
 @pytest.mark.parametrize("name", ["v.nii", "v.nii.gz", "v.hdr", "v.img"])
 def test_volume_round_trip(tmp_path, name):
-    vol = _volume()
+    # Oblique but closest to RAS, so loading keeps the array layout (reorientation is
+    # tested below).
+    c, s = np.cos(0.3), np.sin(0.3)
+    aff = np.diag([1.0, 1.25, 0.8, 1.0])
+    aff[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ aff[:3, :3]
+    aff[:3, 3] = [-4.0, 6.5, 2.0]
+    vol = _volume(affine=aff)
     save_volume(vol, tmp_path / name)
     back = load_volume(tmp_path / name)
     np.testing.assert_allclose(back.data, vol.data, rtol=F32_RTOL)
-    np.testing.assert_allclose(back.affine, vol.affine, atol=1e-12)
+    # NIfTI-1 stores the sform in float32: entries up to ~7 mm, 7 * 2^-24 ~ 4e-7 mm.
+    np.testing.assert_allclose(back.affine, vol.affine, rtol=0, atol=1e-6)
     exact = tmp_path / ("x" + name[1:])
     save_volume(vol, exact, dtype=np.float64)
     np.testing.assert_array_equal(load_volume(exact).data, vol.data)
@@ -155,6 +162,16 @@ def test_plain_analyze_is_read_and_orientation_assumption_reported(tmp_path, cap
     # nibabel reads Analyze as LAS (x flipped); canonical RAS flips x back.
     np.testing.assert_array_equal(vol.data, data[::-1].astype(np.float64))
     assert info(tmp_path / "an.hdr")["orientation"] == "LAS"
+
+
+def test_missing_orientation_is_reported(tmp_path, caplog):
+    img = nib.Nifti1Image(np.ones((3, 4, 5), np.float32), np.eye(4))
+    img.set_sform(None, code=0)
+    img.set_qform(None, code=0)
+    img.to_filename(str(tmp_path / "bare.nii"))
+    with caplog.at_level(logging.WARNING, logger="jaxhead.io"):
+        load_volume(tmp_path / "bare.nii")
+    assert "no orientation" in caplog.text
 
 
 def test_4d_single_volume_squeezed_multi_rejected(tmp_path):
@@ -239,9 +256,12 @@ def test_truncated_file_rejected(tmp_path, name, keep):
 
 def test_text_file_named_nifti_rejected(tmp_path):
     p = tmp_path / "notes.nii"
-    p.write_text("these are my notes about subject 1\n" * 20)
+    p.write_text("these are my notes about subject 1\n" * 20)  # longer than a header
     with pytest.raises(ValueError, match=r"notes\.nii.*not a NIfTI/Analyze image.*these are my"):
         load_volume(p)
+    (tmp_path / "short.nii").write_text("hello\n")
+    with pytest.raises(ValueError, match=r"short\.nii.*not a NIfTI/Analyze image"):
+        load_volume(tmp_path / "short.nii")
     g = tmp_path / "notes.nii.gz"
     g.write_text("hello\n" * 100)
     with pytest.raises(ValueError, match=r"notes\.nii\.gz.*not gzip-compressed"):
