@@ -1,10 +1,11 @@
 """Electrodes on the scalp: the Electrodes type and placement on a TetMesh.  [host]
 
-An electrode is a disc of the scalp: the outer-boundary faces of the mesh whose centroids lie
-within ``radius_mm`` (Euclidean distance in 3D, restricted to the faces edge-connected to the
-face under the centre, so a disc never jumps across a fold of the surface) of the electrode centre
-projected onto the scalp. For the radii used in EIT (a few mm on a head of radius ~90 mm) the
-Euclidean and geodesic distances differ by < 0.1 % (chord vs arc: r^3 / (24 R^2)).
+An electrode is a disc of the scalp: the outer-boundary faces of the mesh nearest (Euclidean
+distance in 3D between face centroids and the electrode centre projected onto the scalp) to
+the centre, grown through shared edges from the face under the centre so a disc never jumps
+across a fold of the surface, with total area closest to pi r^2. For the radii used in EIT
+(a few mm on a head of radius ~90 mm) Euclidean and geodesic distances differ by < 0.1 %
+(chord vs arc: r^3 / (24 R^2)).
 """
 
 from __future__ import annotations
@@ -88,7 +89,7 @@ class Electrodes(eqx.Module):
                 "electrodes; use 0-based electrode indices < n_elec.")
         counts = np.bincount(fe, minlength=n)
         if np.any(counts == 0):
-            empty = [i for i in np.flatnonzero(counts == 0)]
+            empty = np.flatnonzero(counts == 0).tolist()
             raise ValueError(
                 f"electrodes {empty[:10]} have no faces; every electrode needs at least one "
                 "boundary face (increase the radius or refine the mesh under it).")
@@ -211,22 +212,38 @@ class _Scalp:
         return out
 
     def disc(self, centre: np.ndarray, face0: int, radius: float) -> np.ndarray:
-        """Faces edge-connected to `face0` whose centroid is within `radius` of `centre`."""
-        inside = np.linalg.norm(self.centroids - centre, axis=1) <= radius
-        inside[face0] = True
-        seen = {int(face0)}
-        front = [int(face0)]
+        """Faces of a disc of area ~pi r^2 grown from `face0`, nearest centroid first.
+
+        From the face under the centre, repeatedly add the edge-adjacent face whose centroid
+        is nearest `centre` (3D distance), and stop when the area is closest to pi r^2: the
+        area is then right to within half a face, and the patch is as round as the faces
+        allow and never jumps across a fold of the surface.
+        """
+        import heapq
+
+        target = np.pi * radius * radius
         indptr, indices = self.adj.indptr, self.adj.indices
-        while front:
-            nxt = []
-            for f in front:
-                for g in indices[indptr[f]:indptr[f + 1]]:
-                    g = int(g)
-                    if inside[g] and g not in seen:
-                        seen.add(g)
-                        nxt.append(g)
-            front = nxt
-        return np.array(sorted(seen), dtype=np.int64)
+        dist = lambda f: float(np.linalg.norm(self.centroids[f] - centre))
+        chosen = [int(face0)]
+        area = float(self.areas[face0])
+        seen = {int(face0)}
+        heap = []
+        for g in indices[indptr[face0]:indptr[face0 + 1]]:
+            heapq.heappush(heap, (dist(g), int(g)))
+            seen.add(int(g))
+        while heap:
+            _, f = heapq.heappop(heap)
+            a = float(self.areas[f])
+            if abs(area + a - target) >= abs(area - target):
+                break
+            chosen.append(f)
+            area += a
+            for g in indices[indptr[f]:indptr[f + 1]]:
+                g = int(g)
+                if g not in seen:
+                    seen.add(g)
+                    heapq.heappush(heap, (dist(g), g))
+        return np.array(sorted(chosen), dtype=np.int64)
 
 
 def _per_electrode(value, n: int, name: str, unit: str) -> np.ndarray:
@@ -252,11 +269,12 @@ def place_electrodes(
 ) -> Electrodes:
     """Place disc electrodes on the scalp (outer boundary) of a mesh.
 
-    Each electrode is the set of outer-boundary faces whose centroid lies within `radius_mm`
-    (3D distance) of the centre projected onto the scalp, grown from the face under the centre
-    through shared edges. The face under the centre is always included; if no other centroid is
-    inside the radius (mesh too coarse), a warning says so. Areas therefore match pi r^2 only
-    to within the boundary mesh size.
+    Each electrode is a patch of outer-boundary faces around the centre projected onto the
+    scalp: grown from the face under the centre through shared edges, nearest face centroid
+    first, until its area is closest to pi r^2 (so the area, which sets the contact
+    conductance |e|/z of the complete electrode model, is right to within half a face). The
+    face under the centre is always included; if the faces are too coarse for the radius (area
+    off by more than 50 %), a warning says so.
 
     Arguments:
         mesh: the head TetMesh; its outer boundary is the scalp.
@@ -281,29 +299,49 @@ def place_electrodes(
     Returns:
         Electrodes with centres on the scalp and the boundary faces under each disc.
     """
-    scalp = _Scalp(mesh)
+    if not isinstance(mesh, TetMesh):
+        raise ValueError(f"`mesh` must be a jaxhead TetMesh, got {type(mesh).__name__}.")
+    if max_distance_mm <= 0:
+        raise ValueError(f"`max_distance_mm` must be > 0, got {max_distance_mm}.")
     if isinstance(positions, str) or (
             isinstance(positions, (list, tuple)) and positions
             and all(isinstance(p, str) for p in positions)):
+        kind = "layout"
+        layout = _layout_names(positions)
         if names is not None:
             raise ValueError("`names` is only for coordinate positions; layouts name their "
                              "electrodes.")
-        names, positions = _layout(scalp, _layout_names(positions), landmarks)
+        if landmarks is not None:
+            _parse_landmarks(landmarks)
+        n_pos = len(layout)
     elif isinstance(positions, (int, np.integer)) and not isinstance(positions, bool):
+        kind = "count"
         _check_count(positions, 72.0)
-        positions = _spread(scalp, int(positions), landmarks, 72.0)
-    pos = np.asarray(positions, dtype=np.float64)
-    if pos.ndim != 2 or pos.shape[1] != 3 or pos.shape[0] == 0:
-        raise ValueError(
-            f"`positions` must have shape (n_elec, 3) in mm, got {pos.shape}.")
-    if not np.all(np.isfinite(pos)):
-        raise ValueError("`positions` contains NaN or Inf.")
-    n = pos.shape[0]
+        if landmarks is not None:
+            _parse_landmarks(landmarks)
+        n_pos = int(positions)
+    else:
+        kind = "coords"
+        pos = np.asarray(positions, dtype=np.float64)
+        if pos.ndim != 2 or pos.shape[1] != 3 or pos.shape[0] == 0:
+            raise ValueError(
+                f"`positions` must have shape (n_elec, 3) in mm, a layout name or a count; "
+                f"got shape {pos.shape}.")
+        if not np.all(np.isfinite(pos)):
+            raise ValueError("`positions` contains NaN or Inf.")
+        n_pos = pos.shape[0]
+        if names is not None and len(names) != n_pos:
+            raise ValueError(f"`names` has {len(names)} entries for {n_pos} positions.")
+    radius = _per_electrode(radius_mm, n_pos, "radius_mm", "mm")
+    z = _per_electrode(contact_impedance, n_pos, "contact_impedance", "Ohm m^2")
+
+    scalp = _Scalp(mesh)
+    if kind == "layout":
+        names, pos = _layout(scalp, layout, landmarks)
+    elif kind == "count":
+        pos = _spread(scalp, n_pos, landmarks, 72.0)
+    n = n_pos
     names = tuple(names) if names is not None else tuple(f"E{i + 1}" for i in range(n))
-    if len(names) != n:
-        raise ValueError(f"`names` has {len(names)} entries for {n} positions.")
-    radius = _per_electrode(radius_mm, n, "radius_mm", "mm")
-    z = _per_electrode(contact_impedance, n, "contact_impedance", "Ohm m^2")
 
     centres, dist, face0 = scalp.project(pos)
     far = np.flatnonzero(dist > max_distance_mm)
@@ -317,15 +355,25 @@ def place_electrodes(
     faces, owner = [], []
     for i in range(n):
         sel = scalp.disc(centres[i], face0[i], radius[i])
-        if sel.size == 1 and np.linalg.norm(scalp.centroids[sel[0]] - centres[i]) > radius[i]:
+        target = np.pi * radius[i] ** 2
+        got = float(scalp.areas[sel].sum())
+        if abs(got - target) > 0.5 * target:
             warnings.warn(
-                f"electrode {names[i]}: no boundary face centroid within {radius[i]} mm; "
-                "using the face under the centre only. Refine the mesh under the electrodes "
-                "(see `electrode_refinement_points`).", stacklevel=2)
+                f"electrode {names[i]}: the scalp faces are too coarse for radius "
+                f"{radius[i]} mm (area {got:.1f} mm^2 instead of {target:.1f}); refine the mesh "
+                "under the electrodes (see `electrode_refinement_points`).", stacklevel=2)
         faces.append(sel)
         owner.append(np.full(sel.size, i))
     fidx = np.concatenate(faces)
     fe = np.concatenate(owner)
+    uniq, cnt = np.unique(fidx, return_counts=True)
+    if np.any(cnt > 1):
+        shared = set(uniq[cnt > 1].tolist())
+        pairs = sorted({tuple(sorted({names[e] for e in fe[np.isin(fidx, [f])]}))
+                        for f in list(shared)[:20]})
+        raise ValueError(
+            f"electrodes share scalp faces: {pairs[:10]}; they touch on this mesh. Move them "
+            "apart, reduce radius_mm or refine the scalp mesh under them.")
     return Electrodes(centres=centres, faces=scalp.mesh_faces[fidx], face_electrode=fe,
                       contact_impedance=z, names=names, face_areas_mm2=scalp.areas[fidx])
 
@@ -427,7 +475,7 @@ class _HeadFrame:
         self.axes = np.stack([ex, ey, np.cross(ex, ey)])  # rows: right, anterior, superior
 
 
-def _arc(scalp: _Scalp, origin, a, b, via, n: int = 721):
+def _arc(scalp: _Scalp, origin, a, b, via, n: int = 361):
     """The scalp curve from a through via to b in their plane: (points (n,3), arclength (n,)).
 
     The curve is traced by rays from `origin` projected into the plane (Oostenveld & Praamstra
@@ -616,3 +664,45 @@ def _spread(scalp: _Scalp, n_elec: int, landmarks, max_polar_deg: float) -> np.n
     if np.isnan(hits).any():
         raise ValueError("rays from the head centre miss the scalp; pass `landmarks`.")
     return hits
+
+
+def electrode_refinement_points(electrodes: Electrodes, nodes, *, edge_mm: float | None = None,
+                                n_ring: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Points and target edge lengths for refining a mesh under the electrodes.
+
+    For each electrode: its centre and `n_ring` points on the circle of its equivalent radius
+    r = sqrt(area / pi) in the scalp's tangent plane (area-weighted normal of its faces). A
+    mesher's sizing field that asks for edges of `edge_mm` near these points (default r / 2:
+    about 30 faces per electrode, so the disc area is resolved to a few %) refines the scalp
+    under every electrode.
+
+    Arguments:
+        electrodes: placed Electrodes.
+        nodes: (n_nodes, 3) mm positions of the mesh the electrodes were placed on.
+        edge_mm: target edge length in mm (default half of each electrode's radius).
+        n_ring: points on each electrode's rim.
+
+    Returns:
+        points: (n_elec * (1 + n_ring), 3) mm; edge: (n_elec * (1 + n_ring),) target edge in mm.
+    """
+    nodes = np.asarray(nodes, dtype=np.float64)
+    p = nodes[electrodes.faces]
+    fn = 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # area-weighted normals
+    normal = np.zeros((electrodes.n_elec, 3))
+    np.add.at(normal, electrodes.face_electrode, fn)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    r = np.sqrt(electrodes.area_mm2(nodes) / np.pi)
+    ref = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    e1 = np.cross(normal, ref)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(normal, e1)
+    ang = 2 * np.pi * np.arange(n_ring) / n_ring
+    ring = (electrodes.centres[:, None]
+            + r[:, None, None] * (np.cos(ang)[None, :, None] * e1[:, None]
+                                  + np.sin(ang)[None, :, None] * e2[:, None]))
+    pts = np.concatenate([electrodes.centres[:, None], ring], axis=1).reshape(-1, 3)
+    edge = np.repeat(r / 2 if edge_mm is None else np.full(electrodes.n_elec, float(edge_mm)),
+                     1 + n_ring)
+    if not np.all(edge > 0):
+        raise ValueError(f"`edge_mm` must be > 0, got {edge_mm}.")
+    return pts, edge

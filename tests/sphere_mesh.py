@@ -1,4 +1,4 @@
-"""Concentric-sphere TetMeshes for tests: a fast structured one and one from the project mesher.
+"""Concentric-sphere TetMeshes for tests: a fast structured one and an unstructured (fTetWild) one.
 
 `structured_sphere_mesh` maps a Freudenthal (Kuhn) tetrahedralisation of a tensor grid on the
 cube [-R, R]^3 onto the ball by x -> x |x|_inf / |x|_2. The map takes every cube surface
@@ -10,9 +10,13 @@ is what convergence tests need. The map is homogeneous of degree 1 with bounded 
 
 `tetwild_sphere_mesh` meshes nested icospheres with pytetwild (fTetWild) and labels tets by
 centroid radius, for tests that want unstructured meshes like the head pipeline makes.
+
+Both are cached per process (meshes are immutable); pass radii and labels as tuples.
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 
@@ -41,6 +45,7 @@ def _axis(radii: np.ndarray, h: float) -> np.ndarray:
     return np.r_[-half[:0:-1], half]
 
 
+@functools.lru_cache(maxsize=8)
 def structured_sphere_mesh(radii=RADII_MM, h_mm: float = 12.0, labels=None) -> TetMesh:
     """A concentric-shell ball mesh by mapping a cube grid onto the ball.
 
@@ -90,6 +95,7 @@ def structured_sphere_mesh(radii=RADII_MM, h_mm: float = 12.0, labels=None) -> T
     return TetMesh(nodes, tets, labels[shell])
 
 
+@functools.lru_cache(maxsize=4)
 def tetwild_sphere_mesh(radii=RADII_MM, edge_mm: float = 10.0, subdivisions: int = 3,
                         labels=None) -> TetMesh:
     """Nested icospheres meshed by pytetwild, tets labelled by centroid radius.

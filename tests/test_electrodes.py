@@ -1,0 +1,314 @@
+"""Electrodes type and placement on a sphere mesh: geometry against analytic positions."""
+
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxhead.electrodes import (
+    TEN_TEN,
+    TEN_TWENTY,
+    Electrodes,
+    electrode_refinement_points,
+    estimate_landmarks,
+    layout_positions,
+    place_electrodes,
+    spread_positions,
+)
+from sphere_mesh import structured_sphere_mesh
+
+R = 96.0
+H = 10.0  # grid spacing in mm: boundary faces of ~7 mm edges
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return structured_sphere_mesh((R,), h_mm=H)
+
+
+@pytest.fixture(scope="module")
+def face_size(mesh):
+    """Largest centroid-to-vertex distance of a boundary face (mm)."""
+    f, _ = mesh.boundary_faces()
+    p = mesh.nodes[f]
+    return float(np.linalg.norm(p - p.mean(axis=1, keepdims=True), axis=2).max())
+
+
+def max_face_area(mesh):
+    f, _ = mesh.boundary_faces()
+    p = mesh.nodes[f]
+    return float(0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).max())
+
+
+LANDMARKS = {"nasion": [0, R, 0], "inion": [0, -R, 0], "lpa": [-R, 0, 0], "rpa": [R, 0, 0]}
+
+
+def _sph(polar_deg, azim_deg):
+    t, p = np.radians(polar_deg), np.radians(azim_deg)
+    return R * np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
+
+
+def _arc_point(p, q, via_plane, frac):
+    """Point at fraction `frac` along the arc p->q of the circle cut from the sphere by the
+    plane through p, q and via_plane (independent of the mesh: pure sphere geometry)."""
+    n = np.cross(q - p, via_plane - p)
+    n /= np.linalg.norm(n)
+    o = n * (p @ n)  # centre of the small circle
+    a, b = p - o, q - o
+    rho = np.linalg.norm(a)
+    e1 = a / rho
+    e2 = np.cross(n, e1)
+    if (via_plane - o) @ e2 < 0:
+        e2 = -e2
+    ang = np.arctan2(b @ e2, b @ e1) % (2 * np.pi)
+    t = frac * ang
+    return o + rho * (np.cos(t) * e1 + np.sin(t) * e2)
+
+
+def _analytic_ten_ten():
+    """10-10 positions on a sphere from the Oostenveld & Praamstra rules, by hand."""
+    P = {}
+    mid = ["Fpz", "AFz", "Fz", "FCz", "Cz", "CPz", "Pz", "POz", "Oz"]
+    for i, nm in enumerate(mid):  # midline great circle nasion (front) -> inion, 18 deg steps
+        P[nm] = _sph(90 - 18 * (i + 1), 90) if i < 4 else _sph(18 * (i - 4), -90)
+    cor = ["T7", "C5", "C3", "C1", "Cz", "C2", "C4", "C6", "T8"]
+    for i, nm in enumerate(cor):
+        P[nm] = _sph(72 - 18 * i, 180) if i < 4 else _sph(18 * (i - 4), 0)
+    ring = ["AF", "F", "FT", "T", "TP", "P", "PO"]
+    for i, r in enumerate(ring):  # the 10 % ring at polar 72 deg, 18 deg azimuth steps
+        P.setdefault(f"{r}7", _sph(72, 90 + 18 * (i + 2)))
+        P.setdefault(f"{r}8", _sph(72, 90 - 18 * (i + 2)))
+    P["Fp1"], P["Fp2"] = _sph(72, 108), _sph(72, 72)
+    P["O1"], P["O2"] = _sph(72, -108), _sph(72, -72)
+    rows = {"AF": [(0.5, "3", "4")], "PO": [(0.5, "3", "4")]}
+    for r in ("F", "FC", "CP", "P"):
+        rows[r] = [(0.25, "5", "6"), (0.5, "3", "4"), (0.75, "1", "2")]
+    lat = {"AF": "AF", "F": "F", "FC": "FT", "CP": "TP", "P": "P", "PO": "PO"}
+    for r, items in rows.items():
+        left, right, m = P[f"{lat[r]}7"], P[f"{lat[r]}8"], P[f"{r}z"]
+        for f, ln, rn in items:
+            P[f"{r}{ln}"] = _arc_point(left, m, right, f)
+            P[f"{r}{rn}"] = _arc_point(right, m, left, f)
+    return P
+
+
+# ---------------------------------------------------------------------------------------------
+# the Electrodes type
+
+
+def _simple():
+    return dict(centres=np.zeros((2, 3)), faces=np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4]]),
+                face_electrode=np.array([0, 0, 1]), contact_impedance=0.01)
+
+
+def test_electrodes_type_basics():
+    e = Electrodes(**_simple())
+    assert e.n_elec == 2
+    assert e.names == ("E1", "E2")
+    np.testing.assert_array_equal(e.contact_impedance, [0.01, 0.01])
+    nodes = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [2, 2, 0.0]])
+    np.testing.assert_allclose(e.area_mm2(nodes), [1.0, 0.5])
+    with pytest.raises(ValueError, match="area_mm2"):
+        e.area_mm2()
+    # a pytree: contact impedance can be swapped and traced
+    e2 = eqx.tree_at(lambda x: x.contact_impedance, e, jnp.array([0.02, 0.03]))
+    f = jax.jit(lambda el: jnp.sum(el.contact_impedance))
+    assert float(f(e2)) == pytest.approx(0.05)
+
+
+@pytest.mark.parametrize("change,match", [
+    (dict(centres=np.zeros((2, 2))), "centres"),
+    (dict(faces=np.array([[0, 1], [1, 2], [2, 3]])), "faces"),
+    (dict(faces=np.array([[0, 1, -2], [1, 2, 3], [2, 3, 4]])), "negative"),
+    (dict(face_electrode=np.array([0, 0])), "one electrode index per face"),
+    (dict(face_electrode=np.array([0, 0, 2])), "0-based electrode"),
+    (dict(face_electrode=np.array([0, 0, 0])), r"electrodes \[1\] have no faces"),
+    (dict(contact_impedance=-1.0), "contact_impedance"),
+    (dict(contact_impedance=np.array([0.01, np.nan])), "contact_impedance"),
+    (dict(contact_impedance=np.array([0.01, 0.01, 0.01])), "contact_impedance"),
+    (dict(names=("a",)), "names"),
+    (dict(names=("a", "a")), "duplicates"),
+])
+def test_electrodes_validation(change, match):
+    kw = _simple() | change
+    with pytest.raises(ValueError, match=match):
+        Electrodes(**kw)
+
+
+# ---------------------------------------------------------------------------------------------
+# placement
+
+
+def test_positions_projected_onto_scalp(mesh, face_size):
+    dirs = np.array([[0, 0, 1.0], [1, 0, 0], [0, -1, 0.2], [-0.5, 0.5, 0.7]])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    radius = 10.0
+    e = place_electrodes(mesh, dirs * (R + 5.0), radius_mm=radius, contact_impedance=0.01)
+    r = np.linalg.norm(e.centres, axis=1)
+    # on the polyhedral sphere: between the inscribed face planes and R (sagitta <= s^2 / 2R)
+    assert np.all(r <= R + 1e-9) and np.all(r >= R - face_size**2 / (2 * R) - 1e-9)
+    np.testing.assert_allclose(e.centres / r[:, None], dirs, atol=face_size / R)
+    # area: the disc grows face by face and stops closest to pi r^2, so it is off by at most
+    # half of the largest face
+    area = e.area_mm2()
+    np.testing.assert_allclose(area, e.area_mm2(mesh.nodes))
+    assert np.all(np.abs(area - np.pi * radius**2) <= 0.5 * max_face_area(mesh)), area
+    # faces are outward boundary faces within the disc
+    p = mesh.nodes[e.faces]
+    cen = p.mean(axis=1)
+    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    assert np.all(np.einsum("ij,ij->i", nrm, cen) > 0)
+    # round: every face centroid within a face size of the rim
+    d = np.linalg.norm(cen - e.centres[e.face_electrode], axis=1)
+    assert np.all(d <= radius + face_size)
+    np.testing.assert_array_equal(e.contact_impedance, 0.01)
+    assert e.names == ("E1", "E2", "E3", "E4")
+
+
+def test_per_electrode_radius_and_impedance(mesh):
+    pos = np.array([[0, 0, R], [R, 0, 0]])
+    e = place_electrodes(mesh, pos, radius_mm=[8.0, 16.0], contact_impedance=[0.01, 0.05],
+                         names=["a", "b"])
+    a = e.area_mm2()
+    np.testing.assert_allclose(a, np.pi * np.array([8.0, 16.0]) ** 2,
+                               atol=0.5 * max_face_area(mesh))
+    np.testing.assert_array_equal(e.contact_impedance, [0.01, 0.05])
+    assert e.names == ("a", "b")
+
+
+def test_tiny_radius_takes_face_under_centre_and_warns(mesh):
+    with pytest.warns(UserWarning, match="too coarse"):
+        e = place_electrodes(mesh, np.array([[0.0, 0, R], [0, R, 0]]), radius_mm=0.1)
+    np.testing.assert_array_equal(np.bincount(e.face_electrode), [1, 1])
+
+
+def test_overlap_is_an_error(mesh):
+    pos = np.array([[0, 0, R], [3.0, 0, R], [R, 0, 0]])
+    with pytest.raises(ValueError, match=r"overlap.*E1-E2"):
+        place_electrodes(mesh, pos, radius_mm=5.0)
+
+
+def test_touching_discs_are_an_error(mesh):
+    # two discs that do not overlap (centres > 2 r apart) but lie in the same ~7 mm face
+    f, _ = mesh.boundary_faces()
+    v = mesh.nodes[f[0]]
+    c = v.mean(axis=0)
+    pos = np.array([c + 0.3 * (v[0] - c), c + 0.3 * (v[1] - c)])
+    r = 0.45 * np.linalg.norm(pos[0] - pos[1])
+    with pytest.warns(UserWarning, match="too coarse"):
+        with pytest.raises(ValueError, match="share scalp faces"):
+            place_electrodes(mesh, pos, radius_mm=r)
+
+
+def test_far_position_is_an_error(mesh):
+    pos = np.array([[0, 0, R], [0, 0, -R - 30.0]])
+    with pytest.raises(ValueError, match=r"E2 \(30\.0 mm\)"):
+        place_electrodes(mesh, pos)
+    place_electrodes(mesh, pos, radius_mm=8.0, max_distance_mm=31.0)
+
+
+@pytest.mark.parametrize("kw,match", [
+    (dict(positions=np.zeros((3, 2))), "positions"),
+    (dict(positions=np.zeros((2, 3)) + np.nan), "NaN"),
+    (dict(positions=np.array([[0, 0, R]]), radius_mm=-1.0), "radius_mm"),
+    (dict(positions=np.array([[0, 0, R]]), contact_impedance=0.0), "contact_impedance"),
+    (dict(positions=np.array([[0, 0, R]]), names=["a", "b"]), "names"),
+    (dict(positions="10-30"), "unknown layout"),
+    (dict(positions=["Cz", "Xy9"]), "unknown electrode names"),
+    (dict(positions=0), "positive int"),
+    (dict(positions="10-20", landmarks={"nasion": [0, R, 0]}), "lacks"),
+    (dict(positions="10-20", names=["a"]), "only for coordinate"),
+])
+def test_placement_errors(mesh, kw, match):
+    with pytest.raises(ValueError, match=match):
+        place_electrodes(mesh, **kw)
+
+
+# ---------------------------------------------------------------------------------------------
+# layouts
+
+
+def test_estimated_landmarks_on_sphere(mesh):
+    lm = estimate_landmarks(mesh)
+    for k, v in LANDMARKS.items():
+        np.testing.assert_allclose(lm[k], v, atol=1.0)  # sagitta of ~7 mm faces: < 0.3 mm
+
+
+def test_ten_ten_matches_sphere_geometry(mesh):
+    names, pos = layout_positions(mesh, "10-10", landmarks=LANDMARKS)
+    assert names == TEN_TEN and len(names) == 61
+    ref = _analytic_ten_ten()
+    # the mesh is a polyhedron within ~0.3 mm of the sphere and arcs are traced with 0.25 deg
+    # steps, so positions agree to ~1 % of the radius
+    for nm, p in zip(names, pos):
+        assert np.linalg.norm(p - ref[nm]) < 1.0, (nm, p, ref[nm])
+    np.testing.assert_allclose(pos[names.index("Cz")], [0, 0, R], atol=0.5)
+
+
+def test_ten_twenty_names_and_aliases(mesh):
+    names, pos = layout_positions(mesh, "10-20", landmarks=LANDMARKS)
+    assert names == TEN_TWENTY and len(names) == 21
+    old, pos_old = layout_positions(mesh, ["T3", "T4", "T5", "T6"], landmarks=LANDMARKS)
+    _, pos_new = layout_positions(mesh, ["T7", "T8", "P7", "P8"], landmarks=LANDMARKS)
+    assert old == ("T3", "T4", "T5", "T6")
+    np.testing.assert_allclose(pos_old, pos_new)
+
+
+def test_layout_follows_landmarks_under_rigid_motion():
+    # move the head: rotate about an oblique axis and shift; positions must move with it
+    ang = np.radians(25.0)
+    ax = np.array([1.0, 2.0, 0.5])
+    ax /= np.linalg.norm(ax)
+    K = np.array([[0, -ax[2], ax[1]], [ax[2], 0, -ax[0]], [-ax[1], ax[0], 0]])
+    rot = np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
+    shift = np.array([10.0, -5.0, 20.0])
+    m0 = structured_sphere_mesh((R,), h_mm=H)
+    from jaxhead.mesh import TetMesh
+
+    m1 = TetMesh(m0.nodes @ rot.T + shift, m0.tets, m0.labels)
+    lm1 = {k: np.asarray(v, float) @ rot.T + shift for k, v in LANDMARKS.items()}
+    _, p0 = layout_positions(m0, "10-20", landmarks=LANDMARKS)
+    _, p1 = layout_positions(m1, "10-20", landmarks=lm1)
+    np.testing.assert_allclose(p1, p0 @ rot.T + shift, atol=0.5)
+
+
+def test_place_ten_twenty(mesh):
+    e = place_electrodes(mesh, "10-20", landmarks=LANDMARKS, radius_mm=8.0)
+    assert e.names == TEN_TWENTY
+    assert e.n_elec == 21 and np.all(e.area_mm2() > 0)
+
+
+def test_spread_positions_even_over_upper_head(mesh):
+    n = 32
+    p = spread_positions(mesh, n, landmarks=LANDMARKS)
+    polar = np.degrees(np.arccos(p[:, 2] / np.linalg.norm(p, axis=1)))
+    assert np.all(polar <= 72.0 + 1.0)
+    d = np.linalg.norm(p[:, None] - p[None], axis=-1) + np.eye(n) * 1e9
+    nn = d.min(axis=1)
+    # equal-area spiral: every point's nearest neighbour is close to the spacing of a
+    # hexagonal packing of the cap area (2 pi R^2 (1 - cos 72) / n per point)
+    spacing = np.sqrt(2 * np.pi * R**2 * (1 - np.cos(np.radians(72))) / n * 2 / np.sqrt(3))
+    assert nn.min() > 0.6 * spacing and nn.max() < 1.3 * spacing, (nn / spacing)
+    e = place_electrodes(mesh, n, landmarks=LANDMARKS)
+    np.testing.assert_allclose(e.centres, p, atol=1e-9)
+
+
+def test_refinement_points(mesh):
+    e = place_electrodes(mesh, np.array([[0, 0, R], [R, 0, 0]]), radius_mm=10.0)
+    pts, edge = electrode_refinement_points(e, mesh.nodes)
+    assert pts.shape == (18, 3) and edge.shape == (18,)
+    r_eq = np.sqrt(e.area_mm2() / np.pi)
+    np.testing.assert_allclose(edge, np.repeat(r_eq / 2, 9))
+    ring = pts.reshape(2, 9, 3)
+    dist = np.linalg.norm(ring[:, 1:] - e.centres[:, None], axis=2)
+    np.testing.assert_allclose(dist, np.repeat(r_eq[:, None], 8, axis=1))
+    # the ring lies in the tangent plane: perpendicular to the radial direction
+    radial = e.centres / np.linalg.norm(e.centres, axis=1, keepdims=True)
+    tang = np.einsum("eij,ej->ei", ring[:, 1:] - e.centres[:, None], radial)
+    assert np.abs(tang).max() < 0.05 * r_eq.max()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        electrode_refinement_points(e, mesh.nodes, edge_mm=2.0)
