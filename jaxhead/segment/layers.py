@@ -6,8 +6,9 @@ the CSF everywhere, and the brain eroded by 2x2x2 where the CSF is too thin. :fu
 does the same as explicit 3D rules, in this order, and counts every relabelled voxel:
 
 1. ``closing``: per-layer morphological closing (3D ball of ``closing_radius_mm``, voxel-size
-   aware) of each tissue mask, inside out (BRAIN, CSF, SKULL, SCALP), so an outer layer wins a
-   voxel two closings claim (skull pinholes matter most for EIT).
+   aware) of each tissue mask of the input; where two closings claim a voxel the outer layer wins
+   (BRAIN < CSF < SKULL < SCALP), so a CSF channel through the skull is sealed by skull (skull
+   pinholes shunt current: they matter most for EIT).
 2. ``ventricles``: CSF enclosed by brain (a cavity of the brain solid) becomes BRAIN
    (``ventricles="brain"``, the default: the nested-surface mesh has one brain solid) or is kept
    (``ventricles="keep"``: counted, and treated as part of the brain solid by later rules).
@@ -477,11 +478,14 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
 
     # 1. closing, inside out (an outer layer's closing wins a contested voxel)
     prev = L.copy()
+    added = {}
     for t in TISSUES:
         st = ball(radii[t], vox)
         if st.sum() > 1:
-            mask = L == int(t)
-            L[_close(mask, st) & ~mask] = int(t)
+            mask = prev == int(t)
+            added[t] = _close(mask, st) & ~mask
+    for t, add in added.items():  # TISSUES order: inside out, so the outer layer wins
+        L[add] = int(t)
     ledger.record("closing", prev, L)
 
     # 2. ventricles: CSF in cavities of the brain

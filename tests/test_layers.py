@@ -1,0 +1,274 @@
+"""Tests of jaxhead.segment.layers: every rule on synthetic nested spheres, checked independently."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+
+from jaxhead.segment.layers import (
+    RULES, LayerConfig, LayerReport, ball, make_layers, make_layers_reported, pad_labels)
+from jaxhead.tissue import TISSUES, Tissue
+from jaxhead.volume import LabelMap, default_affine
+
+VOX = 3.0
+CUBE = np.ones((3, 3, 3), dtype=bool)
+NO_CLOSING = LayerConfig(closing_radius_mm=0.0)
+
+
+def world_grid(shape, affine):
+    ijk = np.indices(shape).reshape(3, -1).T
+    return (ijk @ affine[:3, :3].T + affine[:3, 3]).reshape(*shape, 3)
+
+
+def spheres(radii=(24.0, 30.0, 39.0, 48.0), vox=VOX, n=None):
+    """Concentric spheres BRAIN < CSF < SKULL < SCALP (radii in mm), centred in the grid."""
+    n = n or int(2 * radii[-1] / vox) + 8
+    aff = default_affine(vox, (n, n, n))
+    r = np.linalg.norm(world_grid((n, n, n), aff), axis=-1)
+    L = np.zeros((n, n, n), np.uint8)
+    for rad, t in zip(radii[::-1], (4, 3, 2, 1)):
+        L[r <= rad] = t
+    return L, aff, r
+
+
+def solids(L):
+    return {k: (L >= 1) & (L <= k) for k in (1, 2, 3, 4)}
+
+
+def assert_strictly_nested(L):
+    """Independent check: each solid's 3x3x3 dilation lies inside the next (the paper's rule)."""
+    S = solids(L)
+    for k in (1, 2, 3):
+        dil = ndi.binary_dilation(S[k], CUBE)
+        assert not (dil & ~S[k + 1]).any(), f"solid {k} touches outside solid {k + 1}"
+
+
+def assert_counts_add_up(L_in, L_out, rep: LayerReport):
+    """Net change per tissue in the report equals the real change in voxel counts."""
+    cin = np.bincount(L_in.ravel(), minlength=5)
+    cout = np.bincount(L_out.ravel(), minlength=5)
+    for t in Tissue:
+        assert rep.net_change(t) == cout[t] - cin[t], t
+    # every changed voxel was changed by at least one rule
+    assert rep.n_changed() >= int((L_in != L_out).sum())
+
+
+def test_clean_spheres_are_nested_and_stable():
+    L, aff, _ = spheres()
+    out, rep = make_layers_reported(LabelMap(L, aff))
+    assert_strictly_nested(out.labels)
+    assert_counts_add_up(L, out.labels, rep)
+    # every shell here is >= 2 voxels thick: the only changes are the closing's smoothing of
+    # single-voxel staircase tips (the brain, 8 voxels in radius, loses its ~24 tips: ~1%)
+    for t in TISSUES:
+        assert abs(rep.net_change(t)) < 0.02 * (L == t).sum()
+    assert rep.n_changed("components") == rep.n_changed("holes") == rep.n_changed("thickness") == 0
+    # idempotent: a second pass changes nothing
+    out2, rep2 = make_layers_reported(out)
+    assert rep2.n_changed() == 0
+    np.testing.assert_array_equal(out2.labels, out.labels)
+
+
+def test_components_dropped_and_counted():
+    L, aff, _ = spheres()
+    n = L.shape[0]
+    c = n // 2
+    # a 3x3x3 skull blob in the scalp (scalp spans 39..48 mm = 13..16 voxels from the centre)
+    L[c - 1:c + 2, c - 1:c + 2, c + 14:c + 17] = 3
+    # a brain blob floating in the background corner
+    L[1:3, 1:3, 1:3] = 1
+    # a CSF blob in the skull (12 voxels = 36 mm from the centre, skull 30..39)
+    L[c + 12, c, c] = 2
+    out, rep = make_layers_reported(LabelMap(L, aff), NO_CLOSING)
+    ch = rep.changes["components"]
+    assert ch == {(Tissue.SKULL, Tissue.SCALP): 27, (Tissue.BRAIN, Tissue.BACKGROUND): 8,
+                  (Tissue.CSF, Tissue.SKULL): 1}
+    assert rep.dropped_components[Tissue.SCALP] == 1  # the floating blob: a head component
+    assert rep.dropped_components[Tissue.SKULL] == 1
+    assert rep.dropped_components[Tissue.CSF] == 1
+    for k, S in solids(out.labels).items():
+        assert ndi.label(S, ndi.generate_binary_structure(3, 1))[1] == 1, k
+    assert_counts_add_up(L, out.labels, rep)
+
+
+def test_holes_filled_inside_out():
+    L, aff, r = spheres()
+    c = L.shape[0] // 2
+    L[c, c, c] = 0  # background in the brain
+    L[c + 2, c, c] = 4  # scalp in the brain
+    L[c + 11, c, c] = 0  # background in the skull
+    out, rep = make_layers_reported(LabelMap(L, aff), NO_CLOSING)
+    assert rep.changes["holes"] == {(Tissue.BACKGROUND, Tissue.BRAIN): 1, (Tissue.SCALP, Tissue.BRAIN): 1,
+                                    (Tissue.BACKGROUND, Tissue.SKULL): 1}
+    assert out.labels[c, c, c] == 1 and out.labels[c + 2, c, c] == 1 and out.labels[c + 11, c, c] == 3
+    assert_counts_add_up(L, out.labels, rep)
+
+
+@pytest.mark.parametrize("mode", ["brain", "keep"])
+def test_ventricles(mode):
+    L, aff, r = spheres()
+    ventricle = r <= 9.0
+    L[ventricle] = 2
+    n_v = int(ventricle.sum())
+    out, rep = make_layers_reported(LabelMap(L, aff), LayerConfig(closing_radius_mm=0.0, ventricles=mode))
+    assert rep.ventricle_voxels == n_v
+    if mode == "brain":
+        assert rep.changes["ventricles"] == {(Tissue.CSF, Tissue.BRAIN): n_v}
+        assert np.all(out.labels[ventricle] == 1)
+    else:
+        assert rep.changes["ventricles"] == {}
+        assert np.all(out.labels[ventricle] == 2)
+    assert_counts_add_up(L, out.labels, rep)
+
+
+def test_closing_seals_skull_pinhole():
+    L, aff, r = spheres()
+    c = L.shape[0] // 2
+    assert list(L[c + 9:c + 14, c, c]) == [2, 3, 3, 3, 4]
+    # a one-voxel CSF channel through the skull from the CSF shell into the scalp
+    L[c + 10:c + 14, c, c] = 2
+    out, rep = make_layers_reported(LabelMap(L, aff), LayerConfig(closing_radius_mm=3.0))
+    # a cross-shaped closing (radius one voxel) fills the channel's middle: the skull is sealed
+    assert out.labels[c + 11, c, c] == 3
+    assert rep.changes["closing"].get((Tissue.CSF, Tissue.SKULL), 0) >= 1
+    assert_strictly_nested(out.labels)
+    assert_counts_add_up(L, out.labels, rep)
+
+
+def test_thin_csf_erodes_brain():
+    # brain 24 mm, CSF 27 mm: one voxel of CSF (thinner than the 3x3x3 rule wants), plus a
+    # patch where the brain touches the skull directly
+    L, aff, r = spheres(radii=(24.0, 27.0, 39.0, 48.0))
+    c = L.shape[0] // 2
+    L[c + 7:c + 10, c - 1:c + 2, c - 1:c + 2] = 1
+    out, rep = make_layers_reported(LabelMap(L, aff), NO_CLOSING)
+    assert_strictly_nested(out.labels)
+    ch = rep.changes["nesting"]
+    assert set(ch) == {(Tissue.BRAIN, Tissue.CSF)}  # the paper: erode the brain
+    assert ch[(Tissue.BRAIN, Tissue.CSF)] > 9
+    assert_counts_add_up(L, out.labels, rep)
+
+
+def test_min_thickness_in_mm_with_anisotropic_voxels():
+    vox = np.array([2.0, 2.0, 3.0])
+    n = (50, 50, 34)
+    aff = default_affine(vox, n)
+    xyz = world_grid(n, aff)
+    r = np.linalg.norm(xyz, axis=-1)
+    L = np.zeros(n, np.uint8)
+    for rad, t in ((40.0, 4), (34.0, 3), (31.0, 2), (27.0, 1)):
+        L[r <= rad] = t
+    thick = {"csf": 6.0, "skull": 7.0, "scalp": 5.0}
+    out, rep = make_layers_reported(LabelMap(L, aff), LayerConfig(min_thickness_mm=thick))
+    assert rep.n_changed("thickness") > 0
+    S = solids(out.labels)
+    # independent check by Euclidean distance transforms in mm: every voxel outside solid k is
+    # farther than t from solid k-1 (its voxel centres), so the shell holds all voxels within t
+    for k, t in ((2, "csf"), (3, "skull"), (4, "scalp")):
+        d = ndi.distance_transform_edt(~S[k - 1], sampling=vox)
+        assert d[~S[k]].min() > thick[t], t
+    assert_strictly_nested(out.labels)
+    assert_counts_add_up(L, out.labels, rep)
+
+
+def test_default_thickness_is_one_voxel():
+    rep = make_layers_reported(LabelMap(*spheres()[:2]))[1]
+    assert rep.min_thickness_mm == {Tissue.CSF: VOX, Tissue.SKULL: VOX, Tissue.SCALP: VOX}
+    assert rep.closing_radius_mm[Tissue.BRAIN] == VOX  # max(2 mm, one voxel)
+
+
+def test_ball_is_the_digital_ellipsoid():
+    b = ball(2.0, (1.0, 1.0, 1.0))
+    assert b.shape == (5, 5, 5) and b.sum() == 33  # |d|^2 <= 4: 1 + 6 + 12 + 8 + 6
+    b = ball(3.0, (1.0, 1.5, 3.0))
+    assert b.shape == (7, 5, 3)
+    d = np.argwhere(b) - np.array(b.shape) // 2
+    assert np.all(((d * [1.0, 1.5, 3.0]) ** 2).sum(1) <= 9.0 + 1e-9)
+    # large balls approach the continuous volume (error ~ surface / volume ~ 3/r)
+    assert abs(ball(20.0, 1.0).sum() / (4 / 3 * np.pi * 20 ** 3) - 1) < 0.01
+    assert ball(0.5, 1.0).sum() == 1
+
+
+def test_report_str_and_dict():
+    L, aff, _ = spheres()
+    L[1:3, 1:3, 1:3] = 1
+    rep = make_layers_reported(LabelMap(L, aff))[1]
+    d = rep.to_dict()
+    json.dumps(d)
+    assert list(d["changes"]) == list(RULES)
+    assert d["changes"]["components"]["brain->background"] == 8
+    s = str(rep)
+    for rule in RULES:
+        assert rule in s
+    assert "BRAIN->BACKGROUND 8" in s
+    assert make_layers(LabelMap(L, aff)).labels.shape == L.shape
+
+
+def test_pad_labels_keeps_world_positions():
+    L, aff, _ = spheres()
+    aff = aff.copy()
+    aff[0, :3] *= -1  # a flipped axis
+    p = pad_labels(LabelMap(L, aff), (2, 3, 4))
+    assert p.shape == (L.shape[0] + 4, L.shape[1] + 6, L.shape[2] + 8)
+    ijk = np.array([5, 6, 7, 1.0])
+    np.testing.assert_allclose(p.affine @ (ijk + [2, 3, 4, 0]), aff @ ijk)
+    assert p.labels[7, 9, 11] == L[5, 6, 7]
+    with pytest.raises(ValueError, match="n_voxels"):
+        pad_labels(LabelMap(L, aff), -1)
+
+
+# ---------------------------------------------------------------------------------------------
+# bad input
+
+
+def test_missing_tissue():
+    L, aff, _ = spheres()
+    L[L == 2] = 1
+    with pytest.raises(ValueError, match="no CSF voxels"):
+        make_layers(LabelMap(L, aff))
+
+
+def test_empty_map():
+    L, aff, _ = spheres()
+    with pytest.raises(ValueError, match="empty"):
+        make_layers(LabelMap(np.zeros_like(L), aff))
+
+
+def test_labels_out_of_range():
+    L, aff, _ = spheres()
+    L[0, 0, 0] = 7
+    with pytest.raises(ValueError, match="outside 0..4"):
+        LabelMap(L, aff)
+    with pytest.raises(ValueError, match="LabelMap"):
+        make_layers(L)
+
+
+def test_layer_on_border_names_tissue_and_pad():
+    L, aff, _ = spheres()
+    L[:, :, 0] = np.where(L[:, :, 1] > 0, 4, 0)
+    L[L.shape[0] // 2, L.shape[1] // 2, 0] = 3
+    with pytest.raises(ValueError, match=r"SKULL on z=0.*pad_labels"):
+        make_layers(LabelMap(L, aff))
+    # padding fixes it
+    out = make_layers(pad_labels(LabelMap(L, aff), 2))
+    assert_strictly_nested(out.labels)
+
+
+def test_growth_into_border_is_an_error():
+    L, aff, _ = spheres(n=34)  # scalp (48 mm = 16 voxels) ends one voxel from the border
+    with pytest.raises(ValueError, match=r"pad_labels\(labels, \d+\)"):
+        make_layers(LabelMap(L, aff), LayerConfig(min_thickness_mm={"scalp": 12.0}))
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="min_thickness_mm"):
+        LayerConfig(min_thickness_mm={"brain": 2.0})
+    with pytest.raises(ValueError, match="closing_radius_mm"):
+        LayerConfig(closing_radius_mm=-1.0)
+    with pytest.raises(ValueError, match="unknown tissue"):
+        LayerConfig(closing_radius_mm={"bone": 1.0})
+    with pytest.raises(ValueError, match="ventricles"):
+        LayerConfig(ventricles="csf")
+    cfg = LayerConfig(min_thickness_mm={Tissue.SKULL: 4.0})
+    assert cfg.thicknesses([1.0, 1.0, 2.0]) == {Tissue.CSF: 2.0, Tissue.SKULL: 4.0, Tissue.SCALP: 2.0}
