@@ -636,13 +636,15 @@ def _vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
-def _separate(inner: Surface, outer: Surface, gap: float, max_iter: int) -> tuple[Surface, int, float]:
+def _separate(inner: Surface, outer: Surface, gap: float, max_iter: int,
+              max_move: float) -> tuple[Surface, int, float]:
     """Push inner vertices inward (along their normals) until every inner vertex lies at least
     1.1 gap inside `outer` and every outer vertex at least 1.1 gap outside `inner`.
 
     Returns (new inner surface, vertices moved, largest total move in mm). The 10% margin covers
     the difference between these vertex-to-surface distances and the exact surface-to-surface
-    distance checked afterwards (edge-edge proximity between vertices).
+    distance checked afterwards (edge-edge proximity between vertices). A vertex that would move
+    more than `max_move` mm in total means the shell is thinner than the gap: ValueError.
     """
     import gpytoolbox
 
@@ -669,6 +671,14 @@ def _separate(inner: Surface, outer: Surface, gap: float, max_iter: int) -> tupl
         V = V - _vertex_normals(V, F) * push[:, None]
         moved |= push > 0
         total += push
+        if total.max() > max_move:
+            raise ValueError(
+                f"the {outer.tissue.name} shell is thinner than min_gap_mm={gap:g} in places: "
+                f"{int((total > max_move).sum())} {inner.tissue.name} surface vertices would have "
+                f"to move more than {max_move:.2f} mm inward (up to {total.max():.2f} mm) to "
+                f"keep the {inner.tissue.name} surface {gap:g} mm inside the {outer.tissue.name} "
+                f"surface. Raise LayerConfig.min_thickness_mm['{outer.tissue.name.lower()}'] "
+                "(make_layers) or lower SurfaceConfig.min_gap_mm.")
     return Surface(V, F, inner.tissue), int(moved.sum()), float(total.max(initial=0.0))
 
 
@@ -736,8 +746,12 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
     for inner_t, outer_t in ((Tissue.SKULL, Tissue.SCALP), (Tissue.CSF, Tissue.SKULL),
                              (Tissue.BRAIN, Tissue.CSF)):
         t0 = time.perf_counter()
+        # The surfaces come from strictly nested masks, so they are already apart except where
+        # remeshing cut a corner (sag ~ h^2 / 8R) or smoothing moved them: a vertex needing more
+        # than the gap plus half an edge means the shell itself is too thin.
+        limit = cfg.min_gap_mm * 1.1 + 0.5 * edges[inner_t]
         new, n_moved, max_move = _separate(surfaces[inner_t], surfaces[outer_t], cfg.min_gap_mm,
-                                           cfg.max_gap_iterations)
+                                           cfg.max_gap_iterations, limit)
         surfaces[inner_t] = new
         # search 3 mm (or 2 gaps): enough to report the typical gap, cheap for manifold3d
         gap = surface_gap_mm(new, surfaces[outer_t], search_mm=max(2 * cfg.min_gap_mm, 3.0))
@@ -745,9 +759,9 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
             raise ValueError(
                 f"the {inner_t.name} surface could not be kept {cfg.min_gap_mm:g} mm inside the "
                 f"{outer_t.name} surface (gap {gap:.3g} mm after {cfg.max_gap_iterations} rounds, "
-                f"{n_moved} vertices moved): the {outer_t.name} shell is too thin for "
-                f"edge_mm={edges[inner_t]:g}. Raise LayerConfig.min_thickness_mm['{outer_t.name.lower()}'], "
-                "lower edge_mm or min_gap_mm.")
+                f"{n_moved} vertices moved): the {outer_t.name} shell is too thin for this gap "
+                f"at edge_mm={edges[inner_t]:g}. Raise LayerConfig.min_thickness_mm"
+                f"['{outer_t.name.lower()}'], raise max_gap_iterations, lower edge_mm or min_gap_mm.")
         gaps[inner_t] = gap
         info[inner_t]["gap_vertices_moved"] = n_moved
         info[inner_t]["max_move_mm"] = max_move

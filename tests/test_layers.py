@@ -246,8 +246,9 @@ def test_labels_out_of_range():
 
 def test_layer_on_border_names_tissue_and_pad():
     L, aff, _ = spheres()
-    L[:, :, 0] = np.where(L[:, :, 1] > 0, 4, 0)
-    L[L.shape[0] // 2, L.shape[1] // 2, 0] = 3
+    c = L.shape[0] // 2
+    L[c, c, :5] = 4  # a "neck" of scalp from the head down to the border
+    L[c, c, 0] = 3
     with pytest.raises(ValueError, match=r"SKULL on z=0.*pad_labels"):
         make_layers(LabelMap(L, aff))
     # padding fixes it
