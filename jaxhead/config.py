@@ -14,6 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from .segment.layers import LayerConfig
+from .surface import SurfaceConfig
+
 Modality = Literal["mri", "ct"]
 
 
@@ -64,6 +67,8 @@ class RunConfig:
     out_dir: str | None = None
     stages: tuple[str, ...] | None = None
     input: InputConfig = field(default_factory=InputConfig)
+    layers: LayerConfig = field(default_factory=LayerConfig)
+    surfaces: SurfaceConfig = field(default_factory=SurfaceConfig)
 
     @property
     def run_dir(self) -> Path:
@@ -150,11 +155,6 @@ def from_dict(cls: type, data: dict, where: str = "") -> Any:
         return cls(**kwargs)
     except TypeError as e:
         raise ValueError(f"[{where or 'top level'}]: {e}") from None
-
-
-def _stage_config_types() -> dict[str, type]:
-    """Sections of the TOML file -> their stage config classes (the stages that exist)."""
-    return {f.name: f.type for f in dataclasses.fields(RunConfig) if dataclasses.is_dataclass(f.type)}
 
 
 def load_config(path: str | Path) -> RunConfig:
