@@ -36,15 +36,20 @@ def cap_factor(n: np.ndarray, halfangle: float | None) -> np.ndarray:
     """Degree-n factor of a uniform density over a cap: the mean of P_n over the cap.
 
     (P_{n-1}(cos a) - P_{n+1}(cos a)) / ((2n+1)(1 - cos a)); 1 for a point (halfangle None/0).
+    `halfangle` may be an array: the result has shape n.shape + halfangle.shape.
     By the Funk-Hecke theorem the same factor turns a point value of a degree-n zonal
     harmonic into its mean over a cap centred there.
     """
     n = np.asarray(n)
-    if halfangle is None or halfangle == 0.0:
+    if halfangle is None:
         return np.ones(n.shape)
-    c = np.cos(halfangle)
-    p = legendre_table(np.array(c), int(n.max()) + 1)
-    return (p[n - 1] - p[n + 1]) / ((2 * n + 1) * (1.0 - c))
+    a = np.asarray(halfangle, dtype=np.float64)
+    c = np.cos(a)
+    p = legendre_table(c, int(n.max()) + 1)  # (n_max + 2, *a.shape)
+    nn = n.reshape(n.shape + (1,) * a.ndim)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = (p[n - 1] - p[n + 1]) / ((2 * nn + 1) * (1.0 - c))
+    return np.where(a == 0.0, 1.0, f)
 
 
 def _unit(v) -> np.ndarray:
@@ -124,11 +129,12 @@ def shell_sphere_potential(points, radii, sigmas, source, sink, current: float =
         source, sink: (3,) directions (or surface points) where current enters and leaves.
         current: injected current in A.
         n_terms: highest Legendre degree.
-        cap_halfangle: uniform current over caps of this half-angle (rad) instead of points.
+        cap_halfangle: uniform current over caps of this half-angle (rad) instead of points;
+            one value or (source, sink).
         average_halfangle: return the mean of u over the cap of this half-angle centred on
             each point's direction (points on the outer surface: electrode voltages of
             non-driving electrodes, which in the complete electrode model equal the mean
-            potential under them).
+            potential under them); one value or one per point.
         accelerate: for point electrodes, sum the series as the closed-form homogeneous
             sphere (outer conductivity) plus the difference series, which converges
             geometrically even on the surface (False: the plain series, for tests).
@@ -146,12 +152,16 @@ def shell_sphere_potential(points, radii, sigmas, source, sink, current: float =
     if np.any(r > R * (1 + 1e-9)):
         raise ValueError("points must lie inside the sphere")
     n = np.arange(1, n_terms + 1)
-    jn = current * (2 * n + 1) / (4 * np.pi * R**2) * cap_factor(n, cap_halfangle)
-    un_R = jn / outer_admittance(radii, sigmas, n)  # degree-n potential at r = R
-    un_R = un_R * cap_factor(n, average_halfangle)
+    caps = (None, None) if cap_halfangle is None else np.broadcast_to(
+        np.asarray(cap_halfangle, dtype=np.float64), (2,))
+    un_R = current * (2 * n + 1) / (4 * np.pi * R**2) / outer_admittance(radii, sigmas, n)
     g = radial_profiles(r, radii, sigmas, n) * un_R[:, None]  # (N, k) degree-n potentials
+    if average_halfangle is not None:
+        avg = np.broadcast_to(np.asarray(average_halfangle, dtype=np.float64), (len(x),))
+        g = g * cap_factor(n, avg)
     out = np.zeros(len(x))
-    point = (cap_halfangle in (None, 0.0)) and (average_halfangle in (None, 0.0))
+    point = (cap_halfangle is None or np.all(np.asarray(cap_halfangle) == 0.0)) and (
+        average_halfangle is None or np.all(np.asarray(average_halfangle) == 0.0))
     if point and accelerate:
         # Kummer's transformation: subtract the homogeneous sphere of the outer conductivity,
         # known in closed form. The remaining degree-n terms decay like (R_{K-1}/R)^(2n+1) in
@@ -161,10 +171,10 @@ def shell_sphere_potential(points, radii, sigmas, source, sink, current: float =
             (r / R)[None, :] ** n[:, None])
     xd = np.where(r[:, None] > 0, x, np.array([0.0, 0.0, 1.0]))
     xd = _unit(xd)
-    for d, sign in ((_unit(source), 1.0), (_unit(sink), -1.0)):
+    for d, sign, cap in ((_unit(source), 1.0, caps[0]), (_unit(sink), -1.0, caps[1])):
         t = np.clip(xd @ d, -1.0, 1.0)
         p = legendre_table(t, n_terms)[1:]  # (N, k)
-        out += sign * np.einsum("nk,nk->k", g, p)
+        out += sign * np.einsum("n,nk,nk->k", cap_factor(n, cap), g, p)
     return out
 
 

@@ -197,3 +197,23 @@ def test_rdm_mag():
     assert mag(a, a) == 0.0
     b = a + np.array([0.1, 0, 0])
     assert 0 < rdm(a, b) < 0.1
+
+
+def test_per_point_and_per_electrode_caps():
+    # arrays of equal angles give the scalar result; a pair (a, a) equals a
+    x = _random_points(5, R, R, seed=7)
+    a = shell_sphere_potential(x, RADII, SIGMA, SRC, SNK, I, n_terms=300, cap_halfangle=0.05,
+                               average_halfangle=0.04)
+    b = shell_sphere_potential(x, RADII, SIGMA, SRC, SNK, I, n_terms=300,
+                               cap_halfangle=(0.05, 0.05), average_halfangle=np.full(5, 0.04))
+    np.testing.assert_allclose(a, b, rtol=1e-13)
+    # linearity: (source cap 0.03, sink cap 0.07) = (source -> far) + (far -> sink), the
+    # two contributions of the far electrode (same cap) cancelling
+    c = shell_sphere_potential(x, RADII, SIGMA, SRC, SNK, I, n_terms=300,
+                               cap_halfangle=(0.03, 0.07))
+    far = np.array([0.1, 0.2, -1.0])
+    s1 = shell_sphere_potential(x, RADII, SIGMA, SRC, far, I, n_terms=300,
+                                cap_halfangle=(0.03, 0.07))
+    s2 = shell_sphere_potential(x, RADII, SIGMA, far, SNK, I, n_terms=300,
+                                cap_halfangle=(0.07, 0.07))
+    np.testing.assert_allclose(c, s1 + s2, rtol=1e-10, atol=1e-12 * np.abs(c).max())
