@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from .mesh import TetMesh
+from .surface import Surface
 
 #: Default contact impedance in Ohm m^2 (see `place_electrodes`).
 DEFAULT_CONTACT_IMPEDANCE_OHM_M2 = 0.02
@@ -141,16 +142,22 @@ class Electrodes(eqx.Module):
 class _Scalp:
     """The outer boundary of a TetMesh as a triangle surface with adjacency and a query tree."""
 
-    def __init__(self, mesh: TetMesh):
+    def __init__(self, mesh: TetMesh | Surface):
         import trimesh
 
-        faces, _ = mesh.boundary_faces()
+        if isinstance(mesh, Surface):
+            faces, nodes = mesh.faces, mesh.vertices
+        elif isinstance(mesh, TetMesh):
+            faces, nodes = mesh.boundary_faces()[0], mesh.nodes
+        else:
+            raise ValueError(f"`mesh` must be a TetMesh or the scalp Surface, got "
+                             f"{type(mesh).__name__}.")
         used = np.unique(faces)
         self.node_index = used  # local vertex -> mesh node
-        remap = np.full(mesh.n_nodes, -1, dtype=np.int64)
+        remap = np.full(nodes.shape[0], -1, dtype=np.int64)
         remap[used] = np.arange(used.size)
         self.mesh_faces = faces
-        self.tm = trimesh.Trimesh(mesh.nodes[used], remap[faces], process=False)
+        self.tm = trimesh.Trimesh(nodes[used], remap[faces], process=False)
         self.centroids = self.tm.triangles_center
         self.areas = self.tm.area_faces
         adj = self.tm.face_adjacency
@@ -428,7 +435,7 @@ def _fit_sphere(p: np.ndarray) -> tuple[np.ndarray, float]:
     return c, float(np.sqrt(sol[3] + c @ c))
 
 
-def estimate_landmarks(mesh: TetMesh) -> dict[str, np.ndarray]:
+def estimate_landmarks(mesh: TetMesh | Surface) -> dict[str, np.ndarray]:
     """Estimate nasion, inion and pre-auricular points from the scalp shape (RAS frame).
 
     Assumes the mesh is in a RAS world frame (x right, y anterior, z superior), as NIfTI
@@ -576,7 +583,7 @@ LAYOUTS = {"10-20": TEN_TWENTY, "10-10": TEN_TEN}
 _OLD_NAMES = {"T3": "T7", "T4": "T8", "T5": "P7", "T6": "P8"}
 
 
-def layout_positions(mesh: TetMesh, layout="10-20", *, landmarks=None):
+def layout_positions(mesh: TetMesh | Surface, layout="10-20", *, landmarks=None):
     """Positions of a standard EEG layout on the scalp of a mesh.
 
     Positions follow Oostenveld & Praamstra (2001): the midline (nasion-Cz-inion) and coronal
@@ -585,7 +592,8 @@ def layout_positions(mesh: TetMesh, layout="10-20", *, landmarks=None):
     the arcs through (lateral, midline, lateral) points cut into quarters of each half.
 
     Arguments:
-        mesh: the head TetMesh.
+        mesh: the head TetMesh, or the scalp Surface (to place refinement points before
+            meshing, e.g. `MeshConfig(refine_points_mm=...)`).
         layout: "10-20" (21 positions), "10-10" (61), or a sequence of names from the 10-10
             system (old names T3/T4/T5/T6 are accepted and mapped to T7/T8/P7/P8).
         landmarks: dict of world-mm coordinates "nasion", "inion", "lpa", "rpa" (projected
@@ -622,7 +630,7 @@ def _layout(scalp: _Scalp, names, landmarks):
     return tuple(names), np.stack([pos[lookup[n.lower()]] for n in canon])
 
 
-def spread_positions(mesh: TetMesh, n_elec: int, *, landmarks=None,
+def spread_positions(mesh: TetMesh | Surface, n_elec: int, *, landmarks=None,
                      max_polar_deg: float = 72.0) -> np.ndarray:
     """`n_elec` positions spread evenly over the upper head.
 
@@ -633,7 +641,7 @@ def spread_positions(mesh: TetMesh, n_elec: int, *, landmarks=None,
     sphere (Fpz, T7, Oz lie at 90 - 18 deg from the vertex).
 
     Arguments:
-        mesh: the head TetMesh.
+        mesh: the head TetMesh or the scalp Surface.
         n_elec: number of electrodes (>= 1).
         landmarks: as in `layout_positions` (defines centre and axes).
         max_polar_deg: cap half-angle in degrees from the vertex, 0 < . <= 180.

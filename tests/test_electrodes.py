@@ -312,3 +312,19 @@ def test_refinement_points(mesh):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         electrode_refinement_points(e, mesh.nodes, edge_mm=2.0)
+
+
+def test_layout_on_scalp_surface_before_meshing(mesh):
+    # positions can come from the scalp Surface (to refine the mesher there): same as on the
+    # mesh whose boundary that surface is
+    from jaxhead.surface import Surface
+
+    f, _ = mesh.boundary_faces()
+    scalp = Surface(mesh.nodes, f, "scalp")
+    names, p_surf = layout_positions(scalp, "10-20", landmarks=LANDMARKS)
+    _, p_mesh = layout_positions(mesh, "10-20", landmarks=LANDMARKS)
+    np.testing.assert_allclose(p_surf, p_mesh, atol=1e-9)
+    np.testing.assert_allclose(spread_positions(scalp, 8, landmarks=LANDMARKS),
+                               spread_positions(mesh, 8, landmarks=LANDMARKS), atol=1e-9)
+    with pytest.raises(ValueError, match="TetMesh"):
+        place_electrodes(scalp, "10-20")
