@@ -1,0 +1,19 @@
+"""Differentiable complete-electrode-model FEM: assembly, solvers, forward model, Jacobian."""
+
+from .assembly import MM_TO_M
+from .forward import ForwardModel, assemble, build_forward_model, jacobian, potentials, simulate
+from .solvers import AbstractSolver, Direct, linear_solve, pardiso_available
+
+__all__ = [
+    "MM_TO_M",
+    "AbstractSolver",
+    "Direct",
+    "ForwardModel",
+    "assemble",
+    "build_forward_model",
+    "jacobian",
+    "linear_solve",
+    "pardiso_available",
+    "potentials",
+    "simulate",
+]
