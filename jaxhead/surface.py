@@ -139,7 +139,7 @@ class SurfaceConfig:
 
     edge_mm: float | dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_EDGE_MM))
     remesh: Literal["isotropic", "decimate"] = "isotropic"
-    remesh_iterations: int = 5
+    remesh_iterations: int = 3
     presmooth_sigma_voxels: float = 0.5
     taubin_iterations: int = 20
     taubin_lambda: float = 0.5
@@ -293,7 +293,7 @@ def edge_lengths(surface: Surface) -> np.ndarray:
     f = surface.faces
     n = surface.vertices.shape[0]
     a, b = f.ravel().astype(np.int64), f[:, [1, 2, 0]].ravel().astype(np.int64)
-    key = np.unique(np.minimum(a, b) * n + np.maximum(a, b))
+    key = _uniq(np.minimum(a, b) * n + np.maximum(a, b))
     e = np.stack([key // n, key % n], axis=1)
     return np.linalg.norm(surface.vertices[e[:, 0]] - surface.vertices[e[:, 1]], axis=1)
 
@@ -304,10 +304,20 @@ def _edge_stats(surface: Surface) -> tuple[float, ...]:
             float(np.percentile(L, 95)), float(L.max()))
 
 
+def _uniq(x: np.ndarray, counts: bool = False):
+    """Sorted unique values (and their counts) by one sort: numpy 2's hash-based np.unique is
+    several times slower on the ~1e6 int64 edge keys of a 1 mm head surface."""
+    x = np.sort(np.asarray(x).ravel())
+    start = np.flatnonzero(np.concatenate([[True], x[1:] != x[:-1]])) if len(x) else np.zeros(0, int)
+    if not counts:
+        return x[start]
+    return x[start], np.diff(np.append(start, len(x)))
+
+
 def _edge_counts(faces: np.ndarray, n_verts: int) -> np.ndarray:
     """Number of faces on each unique undirected edge."""
     a, b = faces.ravel().astype(np.int64), faces[:, [1, 2, 0]].ravel().astype(np.int64)
-    _, counts = np.unique(np.minimum(a, b) * n_verts + np.maximum(a, b), return_counts=True)
+    _, counts = _uniq(np.minimum(a, b) * n_verts + np.maximum(a, b), counts=True)
     return counts
 
 
@@ -335,7 +345,7 @@ def _vertex_fans(faces: np.ndarray, n_verts: int) -> np.ndarray:
     n_comp, comp = csgraph.connected_components(graph, directed=False)
     fans = np.zeros(n_verts, dtype=np.int64)
     # number of distinct components per vertex
-    pairs = np.unique(corner_vertex.astype(np.int64) * (n_comp + 1) + comp)
+    pairs = _uniq(corner_vertex.astype(np.int64) * (n_comp + 1) + comp)
     np.add.at(fans, pairs // (n_comp + 1), 1)
     return fans
 
@@ -390,7 +400,7 @@ def check_surface(surface: Surface, *, self_intersection: bool = True) -> Surfac
     n_v = surface.vertices.shape[0]
     counts = _edge_counts(f, n_v)
     directed = f.ravel().astype(np.int64) * n_v + f[:, [1, 2, 0]].ravel()
-    _, dcounts = np.unique(directed, return_counts=True)
+    _, dcounts = _uniq(directed, counts=True)
     inconsistent = int((dcounts > 1).sum())
     # components through shared edges
     fan_counts = _vertex_fans(f, n_v)
@@ -536,6 +546,39 @@ def _solid_masks(labels: np.ndarray) -> dict[Tissue, tuple[np.ndarray, int]]:
     return out
 
 
+def _check_layers(layers) -> None:
+    """Bad input -> ValueError: not a LabelMap, empty, a tissue missing, tissue on the border.
+
+    (The same checks as ``jaxhead.segment.layers.check_labels``; repeated here so this module
+    does not import the segmentation package.)
+    """
+    if not isinstance(layers, LabelMap):
+        raise ValueError(f"`layers` must be a jaxhead.LabelMap, got {type(layers).__name__}; wrap "
+                         "an array as LabelMap(labels, affine) and run make_layers on it.")
+    lab = layers.labels
+    if lab.min() < 0 or lab.max() > int(max(Tissue)):
+        raise ValueError(f"`layers` has labels outside 0..{int(max(Tissue))}; use Tissue values.")
+    counts = np.bincount(lab.ravel().astype(np.int64), minlength=len(Tissue))
+    if not counts[1:].any():
+        raise ValueError("`layers` is empty (no tissue voxels).")
+    missing = [t.name for t in TISSUES if counts[int(t)] == 0]
+    if missing:
+        raise ValueError(f"`layers` has no {', '.join(missing)} voxels; the nested surfaces need all "
+                         "four tissues (BRAIN=1, CSF=2, SKULL=3, SCALP=4).")
+    border = {}
+    for ax, axis in enumerate("xyz"):
+        for end, tag in ((0, "0"), (-1, "max")):
+            for v in np.unique(np.take(lab, end, axis=ax)):
+                if v:
+                    border.setdefault(Tissue(int(v)).name, []).append(f"{axis}={tag}")
+    if border:
+        where = "; ".join(f"{t} on {', '.join(f)}" for t, f in border.items())
+        raise ValueError(
+            f"`layers` has tissue on the volume border ({where}): its surface would be closed "
+            "artificially there. Pad the volume with background first, e.g. "
+            "`jaxhead.segment.layers.pad_labels(labels, 4)`, and run make_layers.")
+
+
 def _nesting_violations(labels: np.ndarray) -> dict[Tissue, int]:
     """Voxels of each inner solid with a 26-neighbour outside the next solid out."""
     out = {}
@@ -566,22 +609,50 @@ def _marching_cubes(mask: np.ndarray, affine: np.ndarray, sigma: float) -> tuple
     return xyz, faces.astype(np.int64)
 
 
+def _face_components(F: np.ndarray, n_verts: int) -> tuple[int, np.ndarray]:
+    """Connected components of faces through shared edges: (count, label per face)."""
+    a, b = F.ravel().astype(np.int64), F[:, [1, 2, 0]].ravel().astype(np.int64)
+    key = np.minimum(a, b) * n_verts + np.maximum(a, b)
+    order = np.argsort(key, kind="stable")
+    same = key[order][1:] == key[order][:-1]
+    fa, fb = order[:-1][same] // 3, order[1:][same] // 3
+    graph = sparse.coo_matrix((np.ones(len(fa)), (fa, fb)), shape=(len(F), len(F)))
+    return csgraph.connected_components(graph, directed=False)
+
+
+def _is_manifold(V: np.ndarray, F: np.ndarray) -> bool:
+    """Closed, edge-manifold (2 faces per edge), vertex-manifold (one fan), consistently wound."""
+    n_v = len(V)
+    if not np.all(_edge_counts(F, n_v) == 2):
+        return False
+    directed = F.ravel().astype(np.int64) * n_v + F[:, [1, 2, 0]].ravel()
+    if len(_uniq(directed)) != len(directed):
+        return False
+    fans = _vertex_fans(F, n_v)
+    return bool(np.all(fans[_uniq(F)] == 1))
+
+
 def _repair(V: np.ndarray, F: np.ndarray, tissue: Tissue, stage: str) -> tuple[np.ndarray, np.ndarray, dict]:
     """Keep the largest component, fill holes, fix winding/outwardness. Returns counts."""
     import trimesh
 
     counts = {"components_dropped": 0, "faces_dropped": 0, "hole_faces_added": 0, "faces_flipped": 0}
-    tm = _tm(V, F)
-    tm.remove_unreferenced_vertices()
-    parts = tm.split(only_watertight=False)
-    if len(parts) > 1:
-        sizes = [len(p.faces) for p in parts]
+    n_comp, comp = _face_components(F, len(V))
+    if n_comp > 1:
+        sizes = np.bincount(comp)
         keep = int(np.argmax(sizes))
-        counts["components_dropped"] = len(parts) - 1
-        counts["faces_dropped"] = int(sum(sizes) - sizes[keep])
-        tm = parts[keep]
-    n_boundary = int((_edge_counts(np.asarray(tm.faces), len(tm.vertices)) == 1).sum())
+        counts["components_dropped"] = int(n_comp - 1)
+        counts["faces_dropped"] = int(len(F) - sizes[keep])
+        F = F[comp == keep]
+    used = _uniq(F)
+    if len(used) != len(V):  # drop unreferenced vertices
+        remap = np.full(len(V), -1, dtype=np.int64)
+        remap[used] = np.arange(len(used))
+        V, F = V[used], remap[F]
+    n_boundary = int((_edge_counts(F, len(V)) == 1).sum())
+    tm = None
     if n_boundary:
+        tm = _tm(V, F)
         before = len(tm.faces)
         trimesh.repair.fill_holes(tm)
         counts["hole_faces_added"] = int(len(tm.faces) - before)
@@ -590,12 +661,18 @@ def _repair(V: np.ndarray, F: np.ndarray, tissue: Tissue, stage: str) -> tuple[n
                 f"the {tissue.name} surface has holes after {stage} that trimesh cannot close "
                 f"({n_boundary} open edges); check the label map's {tissue.name} layer with "
                 "make_layers (holes, components, border) or lower `presmooth_sigma_voxels`.")
-    faces_before = tm.faces.copy()
-    trimesh.repair.fix_winding(tm)
-    if tm.volume < 0:
-        tm.invert()
-    counts["faces_flipped"] = int((tm.faces != faces_before).any(axis=1).sum())
-    return np.asarray(tm.vertices, dtype=np.float64), np.asarray(tm.faces, dtype=np.int64), counts
+        V, F = np.asarray(tm.vertices, dtype=np.float64), np.asarray(tm.faces, dtype=np.int64)
+    directed = F.ravel().astype(np.int64) * len(V) + F[:, [1, 2, 0]].ravel()
+    if len(_uniq(directed)) != len(directed):  # some faces wound the other way
+        tm = _tm(V, F)
+        before = tm.faces.copy()
+        trimesh.repair.fix_winding(tm)
+        counts["faces_flipped"] += int((tm.faces != before).any(axis=1).sum())
+        F = np.asarray(tm.faces, dtype=np.int64)
+    if surface_volume_mm3(Surface(V, F, tissue)) < 0:
+        F = F[:, ::-1].copy()
+        counts["faces_flipped"] += len(F)
+    return V, F, counts
 
 
 def _taubin(V: np.ndarray, F: np.ndarray, cfg: SurfaceConfig) -> np.ndarray:
@@ -618,7 +695,15 @@ def _remesh(V: np.ndarray, F: np.ndarray, edge: float, cfg: SurfaceConfig) -> tu
     n_target = max(int(area / (math.sqrt(3) / 4 * edge ** 2)), 20)
     n_decim = n_target * (2 if cfg.remesh == "isotropic" else 1)
     if n_decim < len(F):
-        V, F = fast_simplification.simplify(V.astype(np.float64), F.astype(np.int64), target_count=n_decim)
+        Vd, Fd = fast_simplification.simplify(V.astype(np.float64), F.astype(np.int64), target_count=n_decim)
+        if not _is_manifold(Vd, Fd):
+            # quadric decimation without a link-condition check can pinch the surface; libigl's
+            # shortest-edge decimation keeps it manifold (slower, so only as the fallback)
+            import gpytoolbox
+
+            Vd, Fd = gpytoolbox.decimate(V, F.astype(np.int32), num_faces=n_decim,
+                                         method="shortest_edge")[:2]
+        V, F = Vd, Fd
     if cfg.remesh == "isotropic" and cfg.remesh_iterations > 0:
         import gpytoolbox
 
@@ -698,10 +783,8 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
         ValueError: bad labels (missing tissue, on the border, not nested), or a surface that
             cannot be made watertight/manifold or separated from its neighbour (names the tissue).
     """
-    from .segment.layers import check_labels
-
     t_start = time.perf_counter()
-    check_labels(layers, "layers")
+    _check_layers(layers)
     if not isinstance(cfg, SurfaceConfig):
         raise ValueError(f"`cfg` must be a SurfaceConfig, got {type(cfg).__name__}.")
     labels = layers.labels
