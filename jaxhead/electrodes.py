@@ -10,7 +10,9 @@ across a fold of the surface, with total area closest to pi r^2. For the radii u
 
 from __future__ import annotations
 
+import math
 import warnings
+from dataclasses import dataclass
 
 import equinox as eqx
 import jax
@@ -714,3 +716,49 @@ def electrode_refinement_points(electrodes: Electrodes, nodes, *, edge_mm: float
     if not np.all(edge > 0):
         raise ValueError(f"`edge_mm` must be > 0, got {edge_mm}.")
     return pts, edge
+
+
+@dataclass(frozen=True, kw_only=True)
+class ElectrodeConfig:
+    """Settings of :func:`electrodes_from_config` (the pipeline's electrode stage).
+
+    Arguments:
+        layout: "10-20" (21 electrodes), "10-10" (61), a list of 10-10 names, or a count of
+            electrodes spread over the upper head.
+        radius_mm: electrode radius (mm); 5 mm is a 10 mm EEG cup electrode.
+        contact_impedance_ohm_m2: contact impedance (Ohm m^2), see `place_electrodes`.
+        landmarks_mm: {"nasion", "inion", "lpa", "rpa"} world-mm coordinates; None estimates
+            them from the scalp shape (RAS assumed, see `estimate_landmarks`).
+        max_distance_mm: positions farther from the scalp are an error.
+    """
+
+    layout: str | int | tuple[str, ...] = "10-20"
+    radius_mm: float = 5.0
+    contact_impedance_ohm_m2: float = DEFAULT_CONTACT_IMPEDANCE_OHM_M2
+    landmarks_mm: dict[str, tuple[float, float, float]] | None = None
+    max_distance_mm: float = 10.0
+
+    def __post_init__(self):
+        if isinstance(self.layout, bool) or not isinstance(self.layout, (str, int, tuple, list)):
+            raise ValueError(f"`layout` must be '10-20', '10-10', a list of names or a count, "
+                             f"got {self.layout!r}.")
+        if isinstance(self.layout, int):
+            _check_count(self.layout, 72.0)
+        else:
+            _layout_names(self.layout if isinstance(self.layout, str) else tuple(self.layout))
+        for name in ("radius_mm", "contact_impedance_ohm_m2", "max_distance_mm"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                    or v <= 0:
+                raise ValueError(f"`{name}` must be a positive number, got {v!r}.")
+        if self.landmarks_mm is not None:
+            _parse_landmarks(dict(self.landmarks_mm))
+
+
+def electrodes_from_config(mesh: TetMesh, cfg: ElectrodeConfig = ElectrodeConfig()) -> Electrodes:
+    """Place electrodes on a mesh as an `ElectrodeConfig` says (see `place_electrodes`)."""
+    layout = cfg.layout if isinstance(cfg.layout, (str, int)) else list(cfg.layout)
+    return place_electrodes(
+        mesh, layout, radius_mm=cfg.radius_mm, contact_impedance=cfg.contact_impedance_ohm_m2,
+        landmarks=None if cfg.landmarks_mm is None else dict(cfg.landmarks_mm),
+        max_distance_mm=cfg.max_distance_mm)

@@ -12,7 +12,10 @@ second is the negated current pattern), kept in order of first appearance.
 
 from __future__ import annotations
 
+import math
 import os
+from dataclasses import dataclass
+from typing import Literal
 
 import equinox as eqx
 import numpy as np
@@ -244,3 +247,50 @@ def pair_drive(n_elec: int, source: int, sink: int, *,
     if int(source) == int(sink):
         raise ValueError(f"`source` and `sink` are both {source}; use two electrodes.")
     return _build([(int(source), int(sink))], n, current_a)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProtocolConfig:
+    """Settings of :func:`protocol_from_config` (the pipeline's protocol stage).
+
+    Arguments:
+        kind: "adjacent", "opposite", "pair" (one drive pair, `source` and `sink`) or "csv"
+            (read `csv_path`).
+        current_a: injected current in A (for "csv": overrides the file's value if set).
+        source, sink: 0-based drive electrodes for kind "pair".
+        csv_path: protocol file for kind "csv" (columns source, sink, meas+, meas-).
+        one_based: the CSV's indices start at 1 (UCL/Matlab) or 0.
+    """
+
+    kind: Literal["adjacent", "opposite", "pair", "csv"] = "adjacent"
+    current_a: float | None = DEFAULT_CURRENT_A
+    source: int = 0
+    sink: int = 1
+    csv_path: str | None = None
+    one_based: bool = True
+
+    def __post_init__(self):
+        if self.kind not in ("adjacent", "opposite", "pair", "csv"):
+            raise ValueError(f"`kind` = {self.kind!r}; choose adjacent, opposite, pair or csv.")
+        if self.current_a is not None and (
+                isinstance(self.current_a, bool) or not isinstance(self.current_a, (int, float))
+                or not math.isfinite(self.current_a) or self.current_a <= 0):
+            raise ValueError(f"`current_a` must be a positive number of A, got {self.current_a!r}.")
+        if self.current_a is None and self.kind != "csv":
+            raise ValueError("`current_a` may be None only for kind 'csv' (current from the file).")
+        if self.kind == "csv" and not self.csv_path:
+            raise ValueError("kind 'csv' needs `csv_path`.")
+        if self.kind == "pair" and self.source == self.sink:
+            raise ValueError(f"`source` and `sink` are both {self.source}; use two electrodes.")
+
+
+def protocol_from_config(n_elec: int, cfg: ProtocolConfig = ProtocolConfig()) -> Protocol:
+    """Build the protocol a `ProtocolConfig` describes, checked against `n_elec`."""
+    if cfg.kind == "csv":
+        return Protocol.from_csv(cfg.csv_path, current_a=cfg.current_a,
+                                 one_based=cfg.one_based).check(n_elec)
+    if cfg.kind == "adjacent":
+        return adjacent(n_elec, current_a=cfg.current_a)
+    if cfg.kind == "opposite":
+        return opposite(n_elec, current_a=cfg.current_a)
+    return pair_drive(n_elec, cfg.source, cfg.sink, current_a=cfg.current_a)

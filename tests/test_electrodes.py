@@ -328,3 +328,20 @@ def test_layout_on_scalp_surface_before_meshing(mesh):
                                spread_positions(mesh, 8, landmarks=LANDMARKS), atol=1e-9)
     with pytest.raises(ValueError, match="TetMesh"):
         place_electrodes(scalp, "10-20")
+
+
+def test_electrode_config(mesh):
+    from jaxhead.electrodes import ElectrodeConfig, electrodes_from_config
+
+    cfg = ElectrodeConfig(layout=("Cz", "T7", "T8"), radius_mm=8.0,
+                          contact_impedance_ohm_m2=0.05, landmarks_mm=LANDMARKS)
+    e = electrodes_from_config(mesh, cfg)
+    assert e.names == ("Cz", "T7", "T8")
+    np.testing.assert_array_equal(e.contact_impedance, 0.05)
+    np.testing.assert_allclose(e.centres[0], [0, 0, R], atol=0.5)
+    for kw, match in ((dict(layout="10-30"), "unknown layout"), (dict(layout=0), "positive int"),
+                      (dict(radius_mm=0.0), "radius_mm"),
+                      (dict(contact_impedance_ohm_m2=float("nan")), "contact_impedance"),
+                      (dict(landmarks_mm={"nasion": (0, 1, 0)}), "lacks")):
+        with pytest.raises(ValueError, match=match):
+            ElectrodeConfig(**kw)

@@ -147,3 +147,24 @@ def test_protocol_is_a_pytree():
     p = adjacent(8)
     leaves = jax.tree_util.tree_leaves(p)
     assert len(leaves) == 1 and leaves[0] is p.rows
+
+
+def test_protocol_config(tmp_path):
+    from jaxhead.protocol import ProtocolConfig, protocol_from_config
+
+    assert protocol_from_config(16).n_rows == adjacent(16).n_rows
+    p = protocol_from_config(16, ProtocolConfig(kind="opposite", current_a=1e-3))
+    assert p.n_inj == 8 and p.current_a == 1e-3
+    p = protocol_from_config(16, ProtocolConfig(kind="pair", source=2, sink=9))
+    np.testing.assert_array_equal(p.injections, [[2, 9]])
+    path = tmp_path / "p.csv"
+    opposite(16, current_a=3e-4).to_csv(path)
+    p = protocol_from_config(16, ProtocolConfig(kind="csv", csv_path=str(path), current_a=None))
+    assert p.current_a == 3e-4
+    with pytest.raises(ValueError, match="there are 8 electrodes"):
+        protocol_from_config(8, ProtocolConfig(kind="csv", csv_path=str(path)))
+    for kw, match in ((dict(kind="ring"), "kind"), (dict(current_a=-1.0), "current_a"),
+                      (dict(kind="csv"), "csv_path"), (dict(current_a=None), "None"),
+                      (dict(kind="pair", source=3, sink=3), "both 3")):
+        with pytest.raises(ValueError, match=match):
+            ProtocolConfig(**kw)
