@@ -113,7 +113,8 @@ class Electrodes(eqx.Module):
                     "scalp electrodes are 1e-3..1e-1 Ohm m^2.")
         if self.face_areas_mm2 is not None and self.face_areas_mm2.shape != (f.shape[0],):
             raise ValueError(
-                f"`face_areas_mm2` has shape {self.face_areas_mm2.shape}, expected ({f.shape[0]},).")
+                f"`face_areas_mm2` has shape {self.face_areas_mm2.shape}, expected "
+                f"({f.shape[0]},).")
 
     @property
     def n_elec(self) -> int:
@@ -260,7 +261,8 @@ def _per_electrode(value, n: int, name: str, unit: str) -> np.ndarray:
     if v.ndim == 0:
         v = np.full(n, float(v))
     if v.shape != (n,):
-        raise ValueError(f"`{name}` has shape {v.shape}; give one value or one per electrode ({n},).")
+        raise ValueError(
+            f"`{name}` has shape {v.shape}; give one value or one per electrode ({n},).")
     if not np.all(np.isfinite(v)) or not np.all(v > 0):
         raise ValueError(f"`{name}` must be finite and > 0 {unit}, got {v[:10]}.")
     return v

@@ -46,7 +46,8 @@ class Protocol(eqx.Module):
         r = np.asarray(rows)
         if r.size and not np.issubdtype(r.dtype, np.integer):
             if not np.issubdtype(r.dtype, np.number) or not np.all(r == np.round(r)):
-                raise ValueError(f"`rows` must hold integer electrode indices, got dtype {r.dtype}.")
+                raise ValueError(
+                    f"`rows` must hold integer electrode indices, got dtype {r.dtype}.")
         self.rows = r.astype(np.int64).reshape(r.shape)
         self.current_a = float(current_a)
 
