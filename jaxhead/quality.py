@@ -25,7 +25,10 @@ L5 = P3-P2 (Verdict's numbering).
   |L3|^2 (L2 x L0) + |L2|^2 (L3 x L0) + |L0|^2 (L3 x L2) times the surface area over 108 V^2;
   1 regular, orientation independent.
 - ``min_dihedral``: smallest of the six (non-oriented) dihedral angles in degrees; arccos(1/3)
-  = 70.53 deg regular, orientation independent.
+  = 70.53 deg regular, orientation and relabelling independent. VTK's ``min_angle`` (Verdict
+  ``tet_minimum_angle``, VTK 9.7) differs on some tets: it pairs like-oriented face normals at
+  edges P0P2 and P1P3 and so takes 180 deg minus the dihedral there (checked in the tests), so
+  it changes when the nodes are relabelled; ours is the geometric minimum.
 - ``volume``: signed volume J / 6 in mm^3.
 
 Degenerate tets (J == 0 exactly): ``condition`` and ``radius_ratio`` are +inf (Verdict returns
@@ -86,8 +89,8 @@ _SQRT3 = math.sqrt(3.0)
 _SQRT6 = math.sqrt(6.0)
 
 # 4-point Gauss rule on the master tet {r, s, t >= 0, r + s + t <= 1} (volume 1/6), exact for
-# quadratics: a = (5 + 3 sqrt 5) / 20, b = (5 - sqrt 5) / 20, weights 1/24 (Zienkiewicz &
-# Taylor, The Finite Element Method, vol. 1, table 5.4).
+# quadratics: a = (5 + 3 sqrt 5) / 20, b = (5 - sqrt 5) / 20, weights 1/24 (the standard
+# degree-2 rule, e.g. Keast 1986, CMAME 55:339; Verdict uses 4 points for tets as well).
 _GA = (5.0 + 3.0 * math.sqrt(5.0)) / 20.0
 _GB = (5.0 - math.sqrt(5.0)) / 20.0
 _GAUSS_RST = np.array([[_GB, _GB, _GB], [_GA, _GB, _GB], [_GB, _GA, _GB], [_GB, _GB, _GA]])
@@ -95,10 +98,10 @@ _GAUSS_W = np.full(4, 1.0 / 24.0)
 _MASTER_VOLUME = 1.0 / 6.0
 
 
-
 # --------------------------------------------------------------------------------------------
-# Vector algebra. Vectors are tuples of three (n_tets,) arrays (structure of arrays): every operation is
-# elementwise, which keeps the XLA program and its gradient small (compile time) and fused.
+# Vector algebra. Vectors are tuples of three (n_tets,) arrays (structure of arrays): every
+# operation is elementwise, which keeps the XLA program small and fused (measured 2.6x faster
+# than (n_tets, 3) arrays with jnp.cross on 335k tets, and 2.4x faster to compile).
 
 
 def _sub(a, b):
@@ -188,7 +191,8 @@ def _metrics_of_corners(pts):
     abs_jac = jnp.abs(jac)
 
     # Scaled Jacobian (Verdict tet_scaled_jacobian).
-    corner = [sq[0] * sq[2] * sq[3], sq[0] * sq[1] * sq[4], sq[1] * sq[2] * sq[5], sq[3] * sq[4] * sq[5]]
+    corner = [sq[0] * sq[2] * sq[3], sq[0] * sq[1] * sq[4],
+              sq[1] * sq[2] * sq[5], sq[3] * sq[4] * sq[5]]
     length_product = jnp.maximum(_safe_sqrt(_max(corner)), abs_jac)
     scaled_jacobian = _SQRT2 * _safe_div(jac, length_product, 0.0)
 
@@ -215,7 +219,8 @@ def _metrics_of_corners(pts):
     # n = area vectors, |ni x nj| = |J| |PkPl| and ni . nj = -|ni||nj| cos(dihedral); atan2 of
     # the two is accurate near 0 and 180 deg, unlike acos, and independent of orientation.
     face = {3: l2xl0, 2: l3xl0, 1: l3xl2, 0: l4xl1}
-    edge_sq = {(0, 1): sq[0], (1, 2): sq[1], (0, 2): sq[2], (0, 3): sq[3], (1, 3): sq[4], (2, 3): sq[5]}
+    edges = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))  # L0..L5
+    edge_sq = dict(zip(edges, sq))
     angles = []
     for (k, l), e2 in edge_sq.items():
         i, j = (n for n in range(4) if n not in (k, l))
@@ -316,7 +321,7 @@ def shape_objective(nodes: Nodes, tets: Tets, *, delta: float = 0.0) -> jax.Arra
     delta > 0, det S = sigma is replaced by h(sigma) = (sigma + sqrt(sigma^2 + 4 delta^2)) / 2,
     which is positive for every sigma, so the summed objective is finite and smooth for
     tangled meshes too (Escobar, Rodriguez, Montenegro, Montero, Gonzalez-Yuste 2003,
-    Simultaneous untangling and smoothing of tetrahedral meshes, CMAME 192:2775, eq. 11).
+    Simultaneous untangling and smoothing of tetrahedral meshes, CMAME 192:2775).
 
     Arguments:
         nodes: (n_nodes, 3) node positions in mm.
@@ -413,7 +418,9 @@ class QualityReport:
 
     def table(self) -> str:
         """A readable plain-text table of the report."""
-        lines = [f"Tetrahedral mesh quality (Verdict/CUBIT definitions): {self.n_tets} elements", ""]
+        lines = [
+            f"Tetrahedral mesh quality (Verdict/CUBIT definitions): {self.n_tets} elements", ""
+        ]
         lines.append("Elements outside the acceptable ranges (seed paper Table 2):")
         heads = ["elements", "Jacobian <= 0"] + [
             f"{m.replace('_', ' ')} not in [{self.ranges[m][0]:g}, {self.ranges[m][1]:g}]"
@@ -510,7 +517,9 @@ def quality_report(mesh: TetMesh, *, png_dir: str | os.PathLike | None = None) -
     )
 
 
-def _write_histograms(q: dict[str, np.ndarray], labels: np.ndarray, png_dir: str) -> tuple[str, ...]:
+def _write_histograms(
+    q: dict[str, np.ndarray], labels: np.ndarray, png_dir: str
+) -> tuple[str, ...]:
     """One PNG per metric: histogram stacked by tissue, log counts, acceptable range shaded."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

@@ -64,7 +64,9 @@ GRAD_NODES, GRAD_TETS = _delaunay(4, seed=4, scale=10.0, jitter=0.25)  # 4^3 jit
 # formulas): circumcentre by a linear solve, inradius 3V/area, dihedral angles from outward
 # face normals, condition number from explicit matrices.
 
-_W = np.array([[1.0, 0.5, 0.5], [0.0, math.sqrt(3) / 2, math.sqrt(3) / 6], [0, 0, math.sqrt(2 / 3)]])
+_W = np.array(
+    [[1.0, 0.5, 0.5], [0.0, math.sqrt(3) / 2, math.sqrt(3) / 6], [0, 0, math.sqrt(2 / 3)]]
+)
 
 
 def _reference(p):
@@ -88,7 +90,8 @@ def _reference(p):
     dihedral = []
     for i in range(4):
         for j in range(i + 1, 4):
-            ni, nj = normals[i] / np.linalg.norm(normals[i]), normals[j] / np.linalg.norm(normals[j])
+            ni = normals[i] / np.linalg.norm(normals[i])
+            nj = normals[j] / np.linalg.norm(normals[j])
             dihedral.append(math.pi - math.acos(np.clip(ni @ nj, -1, 1)))
     return {
         "jacobian": jac,
@@ -147,7 +150,8 @@ def test_sliver_family_by_hand(h):
     assert q["scaled_jacobian"] == pytest.approx(2 * math.sqrt(2) * h / (1 + 2 * h * h), rel=rel)
     r_in = 3 * (8 * h / 6) / (4 * math.sqrt(1 + 4 * h * h))
     assert q["radius_ratio"] == pytest.approx(math.sqrt(1 + h * h) / (3 * r_in), rel=rel)
-    assert q["min_dihedral"] == pytest.approx(math.degrees(math.acos(1 / (1 + 4 * h * h))), rel=1e-9)
+    side_dihedral = math.degrees(math.acos(1 / (1 + 4 * h * h)))
+    assert q["min_dihedral"] == pytest.approx(side_dihedral, rel=1e-9)
     ref = _reference(p.astype(float))
     assert q["condition"] == pytest.approx(ref["condition"], rel=1e-9)
     if h < 0.1:
@@ -227,17 +231,20 @@ def test_matches_vtk_verdict_on_random_delaunay_mesh():
         # worst slivers; 1e-9 relative is 1e7 ulps of margin and far below any quality meaning.
         np.testing.assert_allclose(q[k], vtk[k], rtol=1e-9, err_msg=k)
     # Verdict's shape = 1 / eta (inverse mean ratio).
-    np.testing.assert_allclose(1 / np.asarray(shape_objective(nodes, tets)), vtk["shape"], rtol=1e-9)
+    eta = np.asarray(shape_objective(nodes, tets))
+    np.testing.assert_allclose(1 / eta, vtk["shape"], rtol=1e-9)
 
 
 def _dihedrals_deg(p):
     """The six dihedral angles of one tet keyed by edge (i, j), from projected edge vectors."""
     out = {}
-    for i, j, k, l in [(0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2), (1, 2, 0, 3), (1, 3, 0, 2), (2, 3, 0, 1)]:
+    edges = [(0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2), (1, 2, 0, 3), (1, 3, 0, 2), (2, 3, 0, 1)]
+    for i, j, k, l in edges:
         e = (p[j] - p[i]) / np.linalg.norm(p[j] - p[i])
         u, v = p[k] - p[i], p[l] - p[i]
         u, v = u - (u @ e) * e, v - (v @ e) * e  # perpendicular parts: the dihedral's sides
-        out[(i, j)] = math.degrees(math.acos(np.clip(u @ v / np.linalg.norm(u) / np.linalg.norm(v), -1, 1)))
+        cos = u @ v / np.linalg.norm(u) / np.linalg.norm(v)
+        out[(i, j)] = math.degrees(math.acos(np.clip(cos, -1, 1)))
     return out
 
 
@@ -268,7 +275,8 @@ def test_vtk_orientation_convention_matches_tetmesh():
     # > 0, the TetMesh convention: both orders agree in sign on every signed metric. For inverted
     # linear tets Verdict's distortion stays 1 (it ignores orientation); ours is -1 by design.
     tets = np.array([[0, 1, 2, 3], [0, 2, 1, 3]])
-    vtk = _vtk_quality(CORNER, tets, ["jacobian", "scaled_jacobian", "condition", "volume", "distortion"])
+    names = ["jacobian", "scaled_jacobian", "condition", "volume", "distortion"]
+    vtk = _vtk_quality(CORNER, tets, names)
     q = tet_metrics(CORNER, tets)
     for k in ("jacobian", "scaled_jacobian", "condition", "volume"):
         np.testing.assert_allclose(np.asarray(q[k]), vtk[k], rtol=1e-14, err_msg=k)
@@ -369,7 +377,9 @@ def test_jit_equals_eager():
     outer = jax.jit(tet_metrics)(nodes, tets)
     for k in METRIC_NAMES:
         # XLA may fuse/reorder float ops: a few ulps, amplified by slivers.
-        np.testing.assert_allclose(np.asarray(jitted[k]), np.asarray(eager[k]), rtol=1e-11, err_msg=k)
+        np.testing.assert_allclose(
+            np.asarray(jitted[k]), np.asarray(eager[k]), rtol=1e-11, err_msg=k
+        )
         np.testing.assert_array_equal(np.asarray(outer[k]), np.asarray(jitted[k]))
 
 
@@ -432,7 +442,8 @@ def test_outside_range_bounds_and_tolerance():
     assert set(TABLE2_METRICS) <= set(ACCEPTABLE_RANGES)
     x = np.array([1.0 + 4e-16, 0.9999999999999998, 3.0, 3.0001, 0.5, np.nan, np.inf])
     np.testing.assert_array_equal(outside_range("condition", x), [0, 0, 0, 1, 1, 1, 1])
-    np.testing.assert_array_equal(outside_range("jacobian", np.array([-1.0, 0.0, 1e-300])), [1, 1, 0])
+    j = np.array([-1.0, 0.0, 1e-300])
+    np.testing.assert_array_equal(outside_range("jacobian", j), [1, 1, 0])
     rep = QualityReport(n_tets=1, outside={m: 0 for m in METRIC_NAMES}, ranges=ACCEPTABLE_RANGES,
                         stats={m: {"max": math.inf} for m in METRIC_NAMES})
     assert rep.to_dict()["stats"]["condition"]["max"] is None
