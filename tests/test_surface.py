@@ -166,6 +166,23 @@ def test_extract_surfaces_logs_report(caplog):
     assert len(surfaces) == 4
 
 
+def test_kept_ventricles_are_filled_and_reported():
+    from jaxhead.segment.layers import LayerConfig
+
+    labels = sphere_labels(radii=(15.0, 18.0, 21.0, 24.0), vox=3.0, flip_x=False, centre=np.zeros(3))
+    L = labels.labels.copy()
+    ijk = np.indices(L.shape).reshape(3, -1).T
+    r = np.linalg.norm(ijk @ labels.affine[:3, :3].T + labels.affine[:3, 3], axis=1).reshape(L.shape)
+    L[r <= 6.0] = 2
+    n_v = int((r <= 6.0).sum())
+    layers = make_layers(LabelMap(L, labels.affine), LayerConfig(ventricles="keep"))
+    assert (layers.labels == 2).sum() > n_v  # kept
+    surfaces, rep = extract_surfaces_reported(layers, SurfaceConfig(edge_mm=3.0))
+    assert rep[Tissue.BRAIN].cavity_voxels == n_v  # the brain solid is filled, and it says so
+    assert rep[Tissue.CSF].cavity_voxels == 0
+    assert check_surface(surfaces[Tissue.BRAIN]).n_components == 1
+
+
 # ---------------------------------------------------------------------------------------------
 # bad input
 
@@ -275,3 +292,41 @@ def test_surface_gap_analytic():
     assert surface_gap_mm(inner, outer, search_mm=1.0) == pytest.approx(1.0)
     # crossing surfaces: 0
     assert surface_gap_mm(ico(10.0, centre=(3, 0, 0)), outer, search_mm=3.0) == 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# phantom heads (jaxhead.phantom): real head shapes, folded brain, neck
+
+
+def _check_head(labels, cfg=SurfaceConfig()):
+    from jaxhead.segment.layers import make_layers_reported
+
+    layers, lrep = make_layers_reported(labels)
+    surfaces, rep = extract_surfaces_reported(layers, cfg)
+    edges = cfg.edges()
+    for t, s in surfaces.items():
+        chk = check_surface(s)
+        assert chk.ok, (t, chk.problems())
+        # smoothing + remeshing keep the enclosed volume within 2% of the voxel volume
+        assert rep[t].volume_mm3 == pytest.approx(rep[t].voxel_volume_mm3, rel=0.02), t
+        assert rep[t].edge_mm[2] == pytest.approx(edges[t], rel=0.3), t
+    for inner, outer in zip(TISSUES[:-1], TISSUES[1:]):
+        assert surface_gap_mm(surfaces[inner], surfaces[outer], search_mm=1.0) >= cfg.min_gap_mm
+    return layers, lrep, surfaces, rep
+
+
+def test_phantom_head_coarse():
+    phantom = pytest.importorskip("jaxhead.phantom")
+    _, labels = phantom.make_head("ct", voxel_mm=6.0, seed=1, bias=False)
+    _check_head(labels, SurfaceConfig(edge_mm=6.0))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("voxel_mm", [2.0, 1.0])
+def test_phantom_head(voxel_mm):
+    phantom = pytest.importorskip("jaxhead.phantom")
+    _, labels = phantom.make_head("mri", voxel_mm=voxel_mm, seed=0)
+    layers, lrep, surfaces, rep = _check_head(labels)
+    # the phantom's ventricles are CSF inside the brain: filled into the brain and counted
+    assert lrep.ventricle_voxels > 0
+    assert lrep.changes["ventricles"] == {(Tissue.CSF, Tissue.BRAIN): lrep.ventricle_voxels}
