@@ -70,6 +70,24 @@ def test_clean_spheres_are_nested_and_stable():
     np.testing.assert_array_equal(out2.labels, out.labels)
 
 
+def test_salt_and_pepper_noise_is_cleaned():
+    # segmentation-like noise: 3% of the head's voxels get a random label (0..4)
+    L, aff, r = spheres(vox=2.5)
+    rng = np.random.default_rng(0)
+    noisy = L.copy()
+    hit = (rng.random(L.shape) < 0.03) & (r < 50.0)
+    noisy[hit] = rng.integers(0, 5, size=int(hit.sum()))
+    out, rep = make_layers_reported(LabelMap(noisy, aff))
+    assert_strictly_nested(out.labels)
+    assert_counts_add_up(noisy, out.labels, rep)
+    for k, S in solids(out.labels).items():  # one component, no cavities
+        assert ndi.label(S, ndi.generate_binary_structure(3, 1))[1] == 1, k
+        assert not (ndi.binary_fill_holes(S) & ~S).any(), k
+    # isolated noise is undone: > 99% of voxels agree with the clean spheres (measured 99.6%)
+    assert (out.labels == L).mean() > 0.99
+    assert sum(rep.dropped_components.values()) > 10
+
+
 def test_components_dropped_and_counted():
     L, aff, _ = spheres()
     n = L.shape[0]
