@@ -536,13 +536,40 @@ def surface_gap_mm(inner: Surface, outer: Surface, *, search_mm: float = 10.0) -
 # Pipeline steps
 
 
+def _crop(mask: np.ndarray, margin: int) -> tuple[slice, slice, slice]:
+    idx = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != ax))) for ax in range(3)]
+    return tuple(slice(max(int(i[0]) - margin, 0), min(int(i[-1]) + margin + 1, n))
+                 for i, n in zip(idx, mask.shape))
+
+
 def _solid_masks(labels: np.ndarray) -> dict[Tissue, tuple[np.ndarray, int]]:
-    """Cavity-filled nested solids and the number of cavity voxels filled in each."""
+    """Cavity-filled nested solids and the number of cavity voxels filled in each.
+
+    A cavity is a component of the complement (face-connected) that does not reach the solid's
+    bounding box margin, which is outside the solid (the grid border is background).
+    """
     out = {}
     for t in TISSUES:
         solid = (labels >= 1) & (labels <= int(t))
-        filled = ndi.binary_fill_holes(solid)
+        sl = _crop(solid, 1)
+        sub = np.pad(~solid[sl], 1, constant_values=True)
+        lab, n = ndi.label(sub)
+        filled = solid.copy()
+        if n > 1:
+            filled[sl] |= (lab != lab[0, 0, 0])[1:-1, 1:-1, 1:-1]
         out[t] = (filled, int(filled.sum() - solid.sum()))
+    return out
+
+
+def _nesting_violations(labels: np.ndarray) -> dict[Tissue, int]:
+    """Voxels outside each shell's outer solid within the 26-neighbourhood of its inner solid."""
+    out = {}
+    cube = np.ones((3, 3, 3), dtype=bool)
+    for k, t in ((1, Tissue.CSF), (2, Tissue.SKULL), (3, Tissue.SCALP)):
+        inner = (labels >= 1) & (labels <= k)
+        sl = _crop(inner, 2)
+        outside = ~((labels[sl] >= 1) & (labels[sl] <= k + 1))
+        out[t] = int((ndi.binary_dilation(inner[sl], cube) & outside).sum())
     return out
 
 
@@ -577,17 +604,6 @@ def _check_layers(layers) -> None:
             f"`layers` has tissue on the volume border ({where}): its surface would be closed "
             "artificially there. Pad the volume with background first, e.g. "
             "`jaxhead.segment.layers.pad_labels(labels, 4)`, and run make_layers.")
-
-
-def _nesting_violations(labels: np.ndarray) -> dict[Tissue, int]:
-    """Voxels of each inner solid with a 26-neighbour outside the next solid out."""
-    out = {}
-    cube = np.ones((3, 3, 3), dtype=bool)
-    for k, t in ((1, Tissue.CSF), (2, Tissue.SKULL), (3, Tissue.SCALP)):
-        inner = (labels >= 1) & (labels <= k)
-        outside = ~((labels >= 1) & (labels <= k + 1))
-        out[t] = int((inner & ndi.binary_dilation(outside, cube)).sum())
-    return out
 
 
 def _marching_cubes(mask: np.ndarray, affine: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -792,7 +808,8 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
     if bad:
         raise ValueError(
             "`layers` is not strictly nested: " + ", ".join(
-                f"{n} voxels inside the {t.name} shell touch what lies outside it" for t, n in bad.items())
+                f"{n} voxels outside the {t.name} shell touch what it should enclose"
+                for t, n in bad.items())
             + "; run `jaxhead.segment.layers.make_layers(labels)` first.")
     edges = cfg.edges()
     vox_vol = abs(float(np.linalg.det(layers.affine[:3, :3])))

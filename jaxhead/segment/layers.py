@@ -476,7 +476,7 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
     L = np.pad(labels.labels.astype(np.uint8), pad, constant_values=0)
     ledger = _Ledger()
 
-    # 1. closing, inside out (an outer layer's closing wins a contested voxel)
+    # 1. closing of each tissue of the input; an outer layer's closing wins a contested voxel
     prev = L.copy()
     added = {}
     for t in TISSUES:
@@ -548,8 +548,9 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
         need = max(need, 0) + 1
         tissues = sorted({Tissue(int(v)) for v in np.unique(L[outside])} | set(border), key=int)
         raise ValueError(
-            f"after enforcing the minimum skull/scalp thickness, {', '.join(t.name for t in tissues)} "
-            f"reaches the volume border; pad the label map first, e.g. "
+            f"after growing the skull and scalp shells (strict nesting, minimum thickness), "
+            f"{', '.join(t.name for t in tissues)} reaches the volume border; pad the label map "
+            f"first, e.g. "
             f"`pad_labels(labels, {need})`, or lower `min_thickness_mm`.")
 
     if kept is not None:
