@@ -1,9 +1,27 @@
-"""Tetrahedral meshes: the TetMesh type and its topology helpers.  [host]"""
+"""Tetrahedral meshes: the TetMesh type, its topology helpers, and tetrahedralize.  [host]
+
+:func:`tetrahedralize` turns the four nested surfaces (``jaxhead.surface``) into a labelled
+four-tissue tet mesh: fTetWild (Hu, Schneider, Wang, Zorin, Panozzo 2020, "Fast Tetrahedral
+Meshing in the Wild", ACM TOG 39(4):117, through pytetwild) meshes all four surfaces at once
+with per-tissue sizes from a background sizing field; tets are labelled by the surfaces that
+contain them; then the worst tets are improved (``jaxhead._meshimprove``) with every interface
+node kept on its interface.
+"""
+
+import logging
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Literal
 
 import equinox as eqx
 import numpy as np
 
+from .surface import Surface
 from .tissue import TISSUES, Tissue
+
+log = logging.getLogger(__name__)
 
 # Local faces of a tet (P0..P3) ordered so that, for a positively oriented tet
 # ((P1-P0) x (P2-P0) . (P3-P0) > 0), each face's normal points out of the tet.
@@ -134,3 +152,616 @@ class TetMesh(eqx.Module):
     def surface_nodes(self) -> np.ndarray:
         """Indices of the nodes on the outer boundary."""
         return np.unique(self.boundary_faces()[0])
+
+
+# ---------------------------------------------------------------------------------------------
+# tetrahedralize: nested surfaces -> labelled tetrahedral mesh (fTetWild, then improvement)
+
+#: Default target tet edge per tissue (mm). Thin shells get edges about their thickness (CSF
+#: ~1.5-3 mm, skull 4-7 mm, scalp 5-7 mm) so that the shells are several tets thick where it
+#: matters; the brain, the largest and least sensitive compartment for scalp EIT, is coarser.
+#: Matches the surfaces' defaults (``SurfaceConfig.edge_mm``) at the interfaces.
+DEFAULT_EDGE_MM = {"brain": 4.0, "csf": 2.0, "skull": 2.5, "scalp": 3.0}
+
+
+def _per_tissue_mm(value, name: str) -> dict[Tissue, float]:
+    """A positive number, or a mapping keyed by every tissue (name or Tissue) -> {Tissue: mm}."""
+    if isinstance(value, Mapping):
+        out = {}
+        for key, v in value.items():
+            try:
+                t = Tissue.parse(key)
+            except ValueError as e:
+                raise ValueError(f"`{name}` has key {key!r}: {e}") from None
+            if t == Tissue.BACKGROUND:
+                raise ValueError(f"`{name}` has key {key!r}; use brain, csf, skull, scalp.")
+            out[t] = v
+        missing = [t.name.lower() for t in TISSUES if t not in out]
+        if missing:
+            raise ValueError(f"`{name}` lacks {missing}; give all of brain, csf, skull, scalp "
+                             "or a single number for all.")
+    else:
+        out = {t: value for t in TISSUES}
+    for t, v in out.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(v) or v <= 0:
+            raise ValueError(f"`{name}[{t.name.lower()}]` must be a positive number of mm, got {v!r}.")
+    return {t: float(out[t]) for t in TISSUES}
+
+
+@dataclass(frozen=True, kw_only=True)
+class MeshConfig:
+    """Settings of :func:`tetrahedralize`.
+
+    Arguments:
+        edge_mm: target tet edge length (mm) per tissue: one number, or a mapping with keys
+            brain, csf, skull, scalp (names or Tissue). Realised through fTetWild's sizing field
+            (a background grid whose value near each tissue is that tissue's edge; the smallest
+            value wins within one grid cell of an interface, so thin shells keep their size).
+        refine_points_mm: (k, 3) points (world mm, e.g. electrode centres) near which the mesh
+            is refined; empty for none.
+        refine_radius_mm: within this distance of a refine point the target edge is
+            `refine_edge_mm`; beyond it the target grows by `refine_grading` mm per mm.
+        refine_edge_mm: target edge length (mm) near the refine points.
+        refine_grading: growth of the target edge (mm per mm of distance) outside the refine
+            radius; 0.5 gives neighbouring tets within a factor ~1.5 of each other.
+        sizing_grid_mm: spacing of the background sizing grid (mm); None picks
+            max(min(edge_mm), refine_edge_mm if points, bbox diagonal / 80).
+        envelope_mm: fTetWild's envelope (maximum distance of the meshed interfaces from the
+            input surfaces, mm); None picks min(1e-3 x bounding-box diagonal (fTetWild's
+            default), smallest gap between surfaces / 3) so two surfaces never fall into one
+            envelope.
+        stop_energy: fTetWild stops optimising when the AMIPS energy of every tet is below this
+            (its default 10); the improvement step below takes care of the rest.
+        max_opt_iterations: fTetWild's maximum optimisation passes.
+        improve: volume-mesh improvement after fTetWild: "relocate" (smart smoothing of
+            interior and interface nodes on the worst tets, interfaces kept on their surfaces,
+            see ``jaxhead._meshimprove``) or "none".
+        improve_iterations: rounds of improvement.
+        threads: fTetWild threads (0: all cores).
+    """
+
+    edge_mm: float | Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_EDGE_MM))
+    refine_points_mm: tuple[tuple[float, float, float], ...] = ()
+    refine_radius_mm: float = 10.0
+    refine_edge_mm: float = 2.0
+    refine_grading: float = 0.5
+    sizing_grid_mm: float | None = None
+    envelope_mm: float | None = None
+    stop_energy: float = 10.0
+    max_opt_iterations: int = 80
+    improve: Literal["relocate", "none"] = "relocate"
+    improve_iterations: int = 10
+    threads: int = 0
+
+    def __post_init__(self):
+        _per_tissue_mm(self.edge_mm, "edge_mm")
+        pts = np.asarray(self.refine_points_mm, dtype=np.float64) if len(self.refine_points_mm) \
+            else np.zeros((0, 3))
+        if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+            raise ValueError(
+                f"`refine_points_mm` must be (k, 3) finite world coordinates in mm, got shape "
+                f"{pts.shape}; pass e.g. electrode centres, or () for none.")
+        object.__setattr__(self, "refine_points_mm", tuple(map(tuple, pts.tolist())))
+        for name in ("refine_radius_mm", "refine_grading"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"`{name}` must be a number >= 0, got {v!r}.")
+        for name in ("refine_edge_mm", "stop_energy"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"`{name}` must be a positive number, got {v!r}.")
+        for name in ("sizing_grid_mm", "envelope_mm"):
+            v = getattr(self, name)
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"`{name}` must be a positive number of mm or None (automatic), got {v!r}.")
+        if self.stop_energy < 3:
+            raise ValueError(f"`stop_energy` = {self.stop_energy}; AMIPS energy is >= 3 (regular "
+                             "tet), use a value > 3 such as fTetWild's default 10.")
+        for name in ("max_opt_iterations", "improve_iterations", "threads"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"`{name}` must be an integer >= 0, got {v!r}.")
+        if self.improve not in ("relocate", "none"):
+            raise ValueError(f"`improve` = {self.improve!r}; choose 'relocate' or 'none'.")
+
+    def edges(self) -> dict[Tissue, float]:
+        """Target edge length per tissue (mm), keyed BRAIN, CSF, SKULL, SCALP."""
+        return _per_tissue_mm(self.edge_mm, "edge_mm")
+
+
+@dataclass(frozen=True)
+class MeshReport:
+    """What :func:`tetrahedralize` did and what came out.
+
+    Arguments:
+        n_nodes, n_tets: the final mesh.
+        tets_per_tissue, volume_mm3, surface_volume_mm3: per tissue (BRAIN..SCALP): tet counts,
+            meshed volumes, and the volumes the input surfaces enclose between them.
+        envelope_mm: fTetWild's envelope used; min_gap_mm: smallest distance between
+            consecutive input surfaces (at their vertices).
+        sizing_grid_mm: background sizing grid spacing (None: no sizing field, one edge length).
+        ftetwild_tets: tets fTetWild returned (inside the scalp surface).
+        dropped_outside: tets whose centroid lies outside the scalp surface (dropped).
+        relabelled_near_interface: tets whose centroid lay within the envelope of a surface and
+            took the side of their neighbours instead (see :func:`label_tets`).
+        nesting_conflicts: tets inside a surface but outside the next one out (labelled by
+            the innermost surface containing them).
+        interface_max_dev_mm: per surface (BRAIN..SCALP), the largest distance of a node of
+            the meshed interface (faces between tets inside and outside that surface; for SCALP
+            the outer boundary) from the input surface.
+        improvement: statistics of the improvement step (empty when improve="none").
+        seconds: wall time per step.
+    """
+
+    n_nodes: int
+    n_tets: int
+    tets_per_tissue: dict
+    volume_mm3: dict
+    surface_volume_mm3: dict
+    envelope_mm: float
+    min_gap_mm: float
+    sizing_grid_mm: float | None
+    ftetwild_tets: int
+    dropped_outside: int
+    relabelled_near_interface: int
+    nesting_conflicts: int
+    interface_max_dev_mm: dict
+    improvement: dict
+    seconds: dict
+
+    def volume_errors(self) -> dict:
+        """Relative error of each tissue's meshed volume against the surfaces' volume."""
+        return {t: self.volume_mm3[t] / self.surface_volume_mm3[t] - 1.0 for t in self.volume_mm3}
+
+    def to_dict(self) -> dict:
+        """A JSON-serialisable dict (tissues by name)."""
+        d = {}
+        for k in self.__dataclass_fields__:
+            v = getattr(self, k)
+            if isinstance(v, dict) and v and isinstance(next(iter(v)), Tissue):
+                v = {t.name.lower(): x for t, x in v.items()}
+            d[k] = v
+        return d
+
+    def __str__(self) -> str:
+        lines = [f"tetrahedralize: {self.n_tets} tets, {self.n_nodes} nodes in "
+                 f"{sum(self.seconds.values()):.1f} s ("
+                 + ", ".join(f"{k} {v:.1f}" for k, v in self.seconds.items()) + ")",
+                 f"  envelope {self.envelope_mm:.3f} mm, min surface gap {self.min_gap_mm:.2f} mm, "
+                 f"fTetWild {self.ftetwild_tets} tets, dropped outside scalp "
+                 f"{self.dropped_outside}, relabelled near interfaces "
+                 f"{self.relabelled_near_interface}, nesting conflicts {self.nesting_conflicts}"]
+        err = self.volume_errors()
+        for t in self.volume_mm3:
+            lines.append(f"  {t.name:<6s} {self.tets_per_tissue[t]:>8d} tets, volume "
+                         f"{self.volume_mm3[t] / 1e3:9.2f} cm^3 (surfaces {self.surface_volume_mm3[t] / 1e3:9.2f}, "
+                         f"{100 * err[t]:+.2f} %), interface max deviation "
+                         f"{self.interface_max_dev_mm[t]:.3f} mm")
+        if self.improvement:
+            lines.append("  improvement: " + ", ".join(f"{k} {v}" for k, v in self.improvement.items()))
+        return "\n".join(lines)
+
+
+def _check_surfaces(surfaces) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Validate the nested surfaces; returns [(vertices, faces)] ordered BRAIN..SCALP."""
+    if not isinstance(surfaces, Mapping):
+        raise ValueError(f"`surfaces` must be a dict {{Tissue: Surface}}, got {type(surfaces).__name__}; "
+                         "use `extract_surfaces(layers)`.")
+    by_tissue = {}
+    for key, s in surfaces.items():
+        try:
+            t = Tissue.parse(key)
+        except ValueError as e:
+            raise ValueError(f"`surfaces` has key {key!r}: {e}") from None
+        if t == Tissue.BACKGROUND:
+            raise ValueError("`surfaces` has a BACKGROUND key; give the BRAIN, CSF, SKULL and SCALP surfaces.")
+        if not isinstance(s, Surface):
+            raise ValueError(f"`surfaces[{t.name}]` must be a jaxhead Surface, got {type(s).__name__}.")
+        if s.tissue != t:
+            raise ValueError(f"`surfaces[{t.name}]` is the {s.tissue.name} surface; key each "
+                             "surface by its own tissue.")
+        by_tissue[t] = s
+    missing = [t.name for t in TISSUES if t not in by_tissue]
+    if missing:
+        raise ValueError(
+            f"`surfaces` lacks the {', '.join(missing)} surface(s); tetrahedralize needs all four "
+            "nested surfaces (BRAIN, CSF, SKULL, SCALP), e.g. from `extract_surfaces(make_layers(labels))`.")
+    out = []
+    for t in TISSUES:
+        V, F = by_tissue[t].vertices, by_tissue[t].faces
+        # Closed, manifold and consistently oriented: every directed edge once, and its reverse once.
+        e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+        code = e[:, 0] * V.shape[0] + e[:, 1]
+        rcode = e[:, 1] * V.shape[0] + e[:, 0]
+        u, cnt = np.unique(code, return_counts=True)
+        if np.any(cnt > 1) or not np.all(np.isin(rcode, u)):
+            n_open = int((~np.isin(rcode, u)).sum())
+            raise ValueError(
+                f"the {t.name} surface is not a closed, consistently oriented manifold "
+                f"({n_open} boundary half-edges, {int((cnt > 1).sum())} repeated directed edges); "
+                "repair it (extract_surfaces does) before meshing.")
+        vol = _enclosed_volume(V, F)
+        if not vol > 0:
+            raise ValueError(f"the {t.name} surface encloses volume {vol:.3g} mm^3 <= 0: its faces "
+                             "must be counter-clockwise seen from outside (flip them).")
+        out.append((V, F))
+    return out
+
+
+def _enclosed_volume(V: np.ndarray, F: np.ndarray) -> float:
+    """Volume enclosed by a closed outward surface (divergence theorem), mm^3."""
+    p = V[F]
+    return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
+
+
+def _winding(V, F, Q) -> np.ndarray:
+    """Generalised winding number of a closed surface at points Q (fast, Barill et al. 2018)."""
+    import gpytoolbox
+
+    if len(Q) == 0:
+        return np.zeros(0)
+    return np.asarray(gpytoolbox.fast_winding_number(np.ascontiguousarray(Q, dtype=np.float64), V, F))
+
+
+class _Dist:
+    """Unsigned distance to a triangle surface through a prebuilt AABB tree (libigl)."""
+
+    def __init__(self, V, F):
+        import gpytoolbox
+
+        self._g = gpytoolbox
+        self.V, self.F = np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32)
+        self.tree = gpytoolbox.squared_distance_precompute(self.V, self.F)
+
+    def __call__(self, Q) -> np.ndarray:
+        if len(Q) == 0:
+            return np.zeros(0)
+        d2, _, _ = self._g.squared_distance(np.ascontiguousarray(Q, dtype=np.float64), self.V, self.F,
+                                            use_cpp=True, cpp_aabb=self.tree)
+        return np.sqrt(np.maximum(d2, 0.0))
+
+    def project(self, Q) -> np.ndarray:
+        """Closest points on the surface, (k, 3) mm."""
+        if len(Q) == 0:
+            return np.zeros((0, 3))
+        _, idx, lam = self._g.squared_distance(np.ascontiguousarray(Q, dtype=np.float64), self.V, self.F,
+                                               use_cpp=True, cpp_aabb=self.tree)
+        return np.einsum("ij,ijk->ik", lam, self.V[self.F[idx]])
+
+
+def _nesting_gaps(surfs, dists) -> list[float]:
+    """Check each surface lies strictly inside the next; returns the vertex gaps (mm)."""
+    gaps = []
+    for k in range(3):
+        Vi, _ = surfs[k]
+        Vo, Fo = surfs[k + 1]
+        w = _winding(Vo, Fo, Vi)
+        outside = w < 0.5
+        inner, outer = TISSUES[k].name, TISSUES[k + 1].name
+        if outside.any():
+            raise ValueError(
+                f"the {inner} surface is not inside the {outer} surface: {int(outside.sum())} of its "
+                f"{len(Vi)} vertices lie outside it. Surfaces must be strictly nested (brain in CSF in "
+                "skull in scalp); extract_surfaces enforces this with a minimum gap.")
+        gap = float(dists[k + 1](Vi).min())
+        if gap <= 0:
+            raise ValueError(f"the {inner} surface touches the {outer} surface (gap 0); nested "
+                             "surfaces need a positive gap (SurfaceConfig.min_gap_mm).")
+        gaps.append(gap)
+    return gaps
+
+
+def _inside_count(surfs, Q) -> np.ndarray:
+    """Number of the nested surfaces containing each point (0 outside the head .. 4 in the brain)."""
+    n = np.zeros(len(Q), dtype=np.int64)
+    for V, F in surfs:
+        n += _winding(V, F, Q) > 0.5
+    return n
+
+
+def sizing_field(surfs, cfg: MeshConfig, spacing_mm: float):
+    """Background grid of target edge lengths for fTetWild (its ``--bg-mesh``).
+
+    Arguments:
+        surfs: [(vertices, faces)] of the BRAIN, CSF, SKULL, SCALP surfaces (mm).
+        cfg: the mesh config (edge_mm per tissue, refine points).
+        spacing_mm: grid spacing (mm).
+
+    Returns:
+        (points (n, 3) mm, tets (m, 4) int32, values (n,) target edge mm).
+    """
+    import pyvista as pv
+
+    edges = cfg.edges()
+    lo = surfs[3][0].min(axis=0) - 2 * spacing_mm
+    hi = surfs[3][0].max(axis=0) + 2 * spacing_mm
+    dims = np.ceil((hi - lo) / spacing_mm).astype(int) + 1
+    grid = pv.ImageData(dimensions=tuple(int(d) for d in dims), spacing=(spacing_mm,) * 3, origin=tuple(lo))
+    pts = np.asarray(grid.points)
+    # Tissue of each grid point (by the nested surfaces); outside the head counts as scalp.
+    n_in = _inside_count(surfs, pts)
+    table = np.array([edges[Tissue.SCALP]] + [edges[TISSUES[4 - i]] for i in range(1, 5)])
+    h = table[n_in].reshape(dims[::-1]).transpose(2, 1, 0)  # VTK points are x-fastest
+    # The smallest edge in each 3x3x3 neighbourhood: a shell thinner than the grid spacing still
+    # gets its own edge length at the grid points around it.
+    from scipy.ndimage import minimum_filter
+
+    h = minimum_filter(h, size=3, mode="nearest").transpose(2, 1, 0).ravel()
+    if cfg.refine_points_mm:
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(np.asarray(cfg.refine_points_mm)).query(pts)
+        h = np.minimum(h, cfg.refine_edge_mm + cfg.refine_grading * np.maximum(d - cfg.refine_radius_mm, 0.0))
+    tet = grid.to_tetrahedra()
+    cells = np.asarray(tet.cells_dict[10], dtype=np.int32)
+    # to_tetrahedra keeps the grid's points in order.
+    assert np.allclose(np.asarray(tet.points), pts)
+    return pts, cells, h
+
+
+def _face_adjacency(tets: np.ndarray):
+    """All tet faces and which pairs of tets share one.
+
+    Returns:
+        faces: (4 m, 3) local faces (outward for positive tets); owner: (4 m,) tet of each face;
+        i, j: indices into faces of the two copies of every interior face; boundary: (4 m,) bool.
+    """
+    faces = tets[:, _TET_FACES].reshape(-1, 3)
+    owner = np.repeat(np.arange(len(tets)), 4)
+    key = np.sort(faces, axis=1)
+    order = np.lexsort(key.T[::-1])
+    ks = key[order]
+    same = np.all(ks[1:] == ks[:-1], axis=1)
+    i, j = order[:-1][same], order[1:][same]
+    boundary = np.ones(len(faces), dtype=bool)
+    boundary[i] = False
+    boundary[j] = False
+    return faces, owner, i, j, boundary
+
+
+def label_tets(nodes, tets, surfs, dists, envelope_mm: float):
+    """Label every tet by the nested surfaces that contain it.
+
+    Each tet is inside surface k if its centroid's winding number is > 1/2. A centroid closer
+    than the envelope to surface k (a flat tet lying along the meshed interface, which fTetWild
+    only keeps within the envelope of the input) cannot be classified by its own position; it
+    takes the side of its face neighbours across faces that do not lie on surface k (across
+    such a face both tets are on the same side), by majority, repeated until no label changes.
+
+    Arguments:
+        nodes: (n, 3) mm; tets: (m, 4); surfs: [(V, F)] BRAIN..SCALP; dists: distance
+        functions to each surface; envelope_mm: the tetrahedraliser's envelope.
+
+    Returns:
+        (labels (m,) with 0 for tets outside the scalp surface, number relabelled near
+        interfaces, number of nesting conflicts).
+    """
+    cen = nodes[tets].mean(axis=1)
+    faces, owner, fi, fj, _ = _face_adjacency(tets)
+    inside = np.zeros((4, len(tets)), dtype=bool)
+    n_relabelled = 0
+    tol = 1.01 * envelope_mm + 1e-9
+    for k, (V, F) in enumerate(surfs):
+        ins = _winding(V, F, cen) > 0.5
+        # Candidates: tets on the interface that the centroid labels give (a mislabelled tet,
+        # or the edge of a mislabelled cluster, always has a face there).
+        cross = ins[owner[fi]] != ins[owner[fj]]
+        cand = np.unique(np.concatenate([owner[fi[cross]], owner[fj[cross]]]))
+        amb = np.zeros(len(tets), dtype=bool)
+        amb[cand[dists[k](cen[cand]) < tol]] = True
+        if amb.any():
+            # Faces lying on surface k: all three nodes within the envelope.
+            near_nodes = np.unique(tets[amb])
+            dn = np.full(len(nodes), np.inf)
+            dn[near_nodes] = dists[k](nodes[near_nodes])
+            on_surf = np.all(dn[faces] < tol, axis=1)
+            a, b = owner[fi], owner[fj]
+            keep = ~on_surf[fi] & (amb[a] | amb[b])
+            a, b = a[keep], b[keep]
+            orig = ins.copy()
+            known = ~amb
+            for _ in range(20):
+                votes = np.zeros(len(tets))
+                cnt = np.zeros(len(tets))
+                for x, y in ((a, b), (b, a)):
+                    m = amb[x] & known[y]
+                    np.add.at(votes, x[m], np.where(ins[y[m]], 1.0, -1.0))
+                    np.add.at(cnt, x[m], 1.0)
+                decide = amb & ~known & (cnt > 0)
+                if not decide.any():
+                    break
+                ins[decide & (votes > 0)] = True
+                ins[decide & (votes < 0)] = False
+                known = known | decide
+            n_relabelled += int((ins != orig).sum())
+        inside[k] = ins
+    # The innermost surface containing the tet decides its tissue.
+    labels = np.zeros(len(tets), dtype=np.int64)
+    for k in range(3, -1, -1):
+        labels[inside[k]] = int(TISSUES[k])
+    # Nested surfaces: inside k implies inside k+1. Count violations (near touching surfaces).
+    conflicts = int(sum((inside[k] & ~inside[k + 1]).sum() for k in range(3)))
+    return labels, n_relabelled, conflicts
+
+
+def _interface_deviation(nodes, tets, labels, dists) -> dict[Tissue, float]:
+    """Largest distance of a meshed interface's nodes from its input surface, per surface (mm)."""
+    faces, owner, fi, fj, boundary = _face_adjacency(tets)
+    out = {}
+    for k, t in enumerate(TISSUES):
+        ins = (labels >= 1) & (labels <= int(t))
+        sel = faces[fi[ins[owner[fi]] != ins[owner[fj]]]]
+        if t == Tissue.SCALP:
+            sel = np.concatenate([sel, faces[boundary]])
+        idx = np.unique(sel)
+        out[t] = float(dists[k](nodes[idx]).max()) if len(idx) else float("nan")
+    return out
+
+
+def _run_ftetwild(V, F, *, edge_mm, envelope_mm, cfg: MeshConfig, bg, what: str):
+    """fTetWild (pytetwild) on one merged surface soup; returns (nodes, positive tets)."""
+    import pytetwild
+
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    kw = dict(edge_length_abs=float(edge_mm), epsilon=float(envelope_mm / diag),
+              stop_energy=float(cfg.stop_energy), num_opt_iter=int(cfg.max_opt_iterations),
+              num_threads=int(cfg.threads), quiet=True, vtk_ordering=True)
+    if bg is not None:
+        kw.update(bg_vertices=bg[0], bg_tets=bg[1], bg_values=bg[2])
+    try:
+        nodes, tets = pytetwild.tetrahedralize(np.ascontiguousarray(V, dtype=np.float64),
+                                               np.ascontiguousarray(F, dtype=np.int32), **kw)
+    except Exception as e:  # the C++ side raises RuntimeError (or others) with its own message
+        raise RuntimeError(f"fTetWild failed on {what}: {type(e).__name__}: {e}") from e
+    nodes = np.asarray(nodes, dtype=np.float64)
+    tets = np.asarray(tets, dtype=np.int64)
+    if tets.ndim != 2 or len(tets) == 0:
+        raise RuntimeError(f"fTetWild returned no tets for {what}.")
+    return nodes, tets
+
+
+def _diagnose_failure(surfs, envelope_mm, cfg) -> str:
+    """After a failed run, mesh each surface alone (coarse, no optimisation) to find the culprit."""
+    bad = []
+    for (V, F), t in zip(surfs, TISSUES):
+        try:
+            import pytetwild
+
+            diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+            nodes, tets = pytetwild.tetrahedralize(
+                V, F.astype(np.int32), edge_length_abs=diag / 10, epsilon=envelope_mm / diag,
+                optimize=False, quiet=True, num_threads=int(cfg.threads))
+            ok = len(tets) > 0 and abs(np.abs(signed_volumes(nodes, tets)).sum() / _enclosed_volume(V, F) - 1) < 0.2
+        except Exception:
+            ok = False
+        if not ok:
+            bad.append(t.name)
+    return (f"fTetWild cannot mesh the {', '.join(bad)} surface(s) alone either; check them "
+            "(check_surface) or re-extract them." if bad else
+            "each surface meshes alone, so the failure comes from their combination (surfaces too "
+            "close: raise SurfaceConfig.min_gap_mm or lower MeshConfig.envelope_mm).")
+
+
+def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -> tuple[TetMesh, MeshReport]:
+    """Nested four-tissue tetrahedral mesh from the four nested surfaces, with a report.
+
+    fTetWild (Hu et al. 2020, ACM TOG 39:117, through pytetwild) meshes the four surfaces at once:
+    their faces are inserted into the tet mesh within an envelope, so every interface is a set
+    of mesh faces and no tet straddles one. Each tet is labelled by the nested surfaces that
+    contain its centroid (:func:`label_tets`); tets outside the scalp surface are dropped.
+    Then the worst tets are improved (``cfg.improve``) without moving any interface off its
+    surface or changing a label.
+
+    Arguments:
+        surfaces: {Tissue: Surface} for BRAIN, CSF, SKULL and SCALP; the surface of tissue T
+            bounds the solid of T and every tissue inside it (see ``jaxhead.surface``). Closed,
+            outward, strictly nested.
+        cfg: sizes, refinement points, fTetWild and improvement settings.
+
+    Returns:
+        (mesh, report): the TetMesh (nodes mm, positively oriented tets, labels 1..4) and a
+        :class:`MeshReport`.
+    """
+    if not isinstance(cfg, MeshConfig):
+        raise ValueError(f"`cfg` must be a MeshConfig, got {type(cfg).__name__}.")
+    seconds = {}
+    t0 = time.perf_counter()
+    surfs = _check_surfaces(surfaces)
+    dists = [_Dist(V, F) for V, F in surfs]
+    gaps = _nesting_gaps(surfs, dists)
+    V = np.concatenate([s[0] for s in surfs])
+    offs = np.cumsum([0] + [len(s[0]) for s in surfs])[:-1]
+    F = np.concatenate([s[1] + o for s, o in zip(surfs, offs)])
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    min_gap = min(gaps)
+    envelope = cfg.envelope_mm if cfg.envelope_mm is not None else min(1e-3 * diag, min_gap / 3.0)
+    if envelope >= min_gap / 2:
+        raise ValueError(
+            f"`envelope_mm` = {envelope:.3g} mm is at least half the smallest gap between the "
+            f"surfaces ({min_gap:.3g} mm): fTetWild could merge two surfaces. Lower envelope_mm "
+            "(or leave it None) or extract the surfaces with a larger min_gap_mm.")
+    edges = cfg.edges()
+    need_field = len(set(edges.values())) > 1 or bool(cfg.refine_points_mm)
+    spacing = None
+    bg = None
+    if need_field:
+        spacing = cfg.sizing_grid_mm or max(
+            min(min(edges.values()), cfg.refine_edge_mm if cfg.refine_points_mm else math.inf), diag / 80)
+        bg = sizing_field(surfs, cfg, spacing)
+    seconds["checks"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    what = "the BRAIN, CSF, SKULL and SCALP surfaces together"
+    try:
+        nodes, tets = _run_ftetwild(V, F, edge_mm=max(edges.values()), envelope_mm=envelope,
+                                    cfg=cfg, bg=bg, what=what)
+    except RuntimeError as e:
+        raise RuntimeError(f"{e}. {_diagnose_failure(surfs, envelope, cfg)}") from e
+    n_ftw = len(tets)
+    tets, n_flipped = orient_tets(nodes, tets)
+    if n_flipped:
+        log.info("tetrahedralize: %d of %d fTetWild tets were negatively oriented; reordered.",
+                 n_flipped, len(tets))
+    seconds["ftetwild"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    labels, n_relab, conflicts = label_tets(nodes, tets, surfs, dists, envelope)
+    keep = labels > 0
+    n_out = int((~keep).sum())
+    tets, labels = tets[keep], labels[keep]
+    zero = signed_volumes(nodes, tets) <= 0
+    if zero.any():
+        raise RuntimeError(f"fTetWild returned {int(zero.sum())} degenerate (zero-volume) tets for {what}; "
+                           "try a smaller edge_mm or envelope_mm.")
+    used = np.unique(tets)
+    remap = np.full(len(nodes), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    nodes, tets = nodes[used], remap[tets]
+    for t in TISSUES:
+        if not np.any(labels == int(t)):
+            raise RuntimeError(
+                f"fTetWild's mesh has no {t.name} tet: the {t.name} shell (between the "
+                f"{t.name} surface and the one inside it) was lost. Its surfaces are probably "
+                "closer than the envelope; lower envelope_mm or raise the surfaces' gap.")
+    seconds["label"] = time.perf_counter() - t0
+
+    improvement = {}
+    if cfg.improve != "none":
+        from ._meshimprove import improve_mesh
+
+        t0 = time.perf_counter()
+        nodes, improvement = improve_mesh(nodes, tets, labels, [d.project for d in dists],
+                                          iterations=cfg.improve_iterations)
+        seconds["improve"] = time.perf_counter() - t0
+
+    mesh = TetMesh(nodes, tets, labels)
+    dev = _interface_deviation(nodes, tets, labels, dists)
+    vols = mesh.tissue_volumes_mm3()
+    enclosed = [_enclosed_volume(*s) for s in surfs]
+    surf_vol = {t: enclosed[k] - (enclosed[k - 1] if k else 0.0) for k, t in enumerate(TISSUES)}
+    report = MeshReport(
+        n_nodes=mesh.n_nodes, n_tets=mesh.n_tets,
+        tets_per_tissue={t: int((labels == int(t)).sum()) for t in TISSUES},
+        volume_mm3=vols, surface_volume_mm3=surf_vol, envelope_mm=float(envelope),
+        min_gap_mm=float(min_gap), sizing_grid_mm=spacing, ftetwild_tets=n_ftw,
+        dropped_outside=n_out, relabelled_near_interface=n_relab, nesting_conflicts=conflicts,
+        interface_max_dev_mm=dev, improvement=improvement, seconds=seconds)
+    log.info("%s", report)
+    return mesh, report
+
+
+def tetrahedralize(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -> TetMesh:
+    """Nested four-tissue tetrahedral mesh from the four nested surfaces.
+
+    See :func:`tetrahedralize_reported` (which also returns the report; this logs it at INFO).
+
+    Arguments:
+        surfaces: {Tissue: Surface} for BRAIN, CSF, SKULL and SCALP (closed, outward, nested).
+        cfg: sizes, refinement points, fTetWild and improvement settings.
+
+    Returns:
+        TetMesh with nodes (n_nodes, 3) mm, positively oriented tets (n_tets, 4) and labels
+        (n_tets,) Tissue 1..4.
+    """
+    return tetrahedralize_reported(surfaces, cfg)[0]

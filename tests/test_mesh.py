@@ -1,0 +1,206 @@
+"""tetrahedralize on nested spheres: labels, orientation, interfaces, volumes, refinement, errors."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from jaxhead.mesh import MeshConfig, TetMesh, tetrahedralize, tetrahedralize_reported
+from jaxhead.surface import Surface
+from jaxhead.tissue import TISSUES, Tissue
+
+RADII = (8.0, 10.0, 12.0, 14.0)  # mm: a brain of 8 mm and three 2 mm shells
+SUBDIV = 3  # icosphere edges ~0.15 R: 1.2 mm (brain) to 2.2 mm (scalp)
+REFINE_AT = np.array([[RADII[3], 0.0, 0.0]])
+
+
+def _sphere(r, subdiv=SUBDIV):
+    s = trimesh.creation.icosphere(subdivisions=subdiv, radius=r)
+    return np.asarray(s.vertices), np.asarray(s.faces)
+
+
+def _surfaces(radii=RADII, subdiv=SUBDIV):
+    return {t: Surface(*_sphere(r, subdiv), t) for t, r in zip(TISSUES, radii)}
+
+
+def _sagitta(r, subdiv=SUBDIV):
+    """Largest distance between the icosphere and its sphere: (circumradius of a face)^2 / (2 R)."""
+    v, f = _sphere(r, subdiv)
+    e = np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2).max()
+    return (e / np.sqrt(3)) ** 2 / (2 * r)
+
+
+@pytest.fixture(scope="module")
+def meshed():
+    cfg = MeshConfig(edge_mm=4.0, refine_points_mm=REFINE_AT, refine_radius_mm=4.0,
+                     refine_edge_mm=1.0, threads=1, max_opt_iterations=20)
+    return tetrahedralize_reported(_surfaces(), cfg)
+
+
+def _faces_closed_oriented(faces):
+    """Every directed edge once and its reverse once: closed, manifold, consistently oriented."""
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    fwd = {tuple(x) for x in e.tolist()}
+    return len(fwd) == len(e) and all((b, a) in fwd for a, b in fwd)
+
+
+def _area(nodes, faces):
+    p = nodes[faces]
+    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+
+
+def test_mesh_is_valid_positive_and_labelled(meshed):
+    mesh, rep = meshed
+    assert isinstance(mesh, TetMesh)
+    assert np.all(mesh.tet_volumes() > 0)  # TetMesh also checks this
+    assert set(np.unique(mesh.labels)) == {1, 2, 3, 4}
+    assert 1000 < mesh.n_tets < 100_000
+    # Every tet's centroid lies in its own shell, up to the band where the polyhedral surface
+    # (inside the sphere by at most the sagitta) and fTetWild's envelope make the side ambiguous.
+    r = np.linalg.norm(mesh.centroids(), axis=1)
+    band = [_sagitta(R) + rep.envelope_mm for R in RADII]
+    for k, t in enumerate(TISSUES):
+        inner = RADII[k - 1] + rep.envelope_mm if k else -1.0
+        sure = (r > inner) & (r < RADII[k] - band[k])
+        assert sure.sum() > 50
+        assert np.all(mesh.labels[sure] == int(t)), t
+    outside = r > RADII[3] + rep.envelope_mm
+    assert not outside.any()  # nothing outside the scalp surface
+
+
+def test_volumes_match_surfaces_and_spheres(meshed):
+    mesh, rep = meshed
+    vols = mesh.tissue_volumes_mm3()
+    # Against the volumes the polyhedral surfaces enclose: fTetWild keeps each interface within
+    # the envelope, so each shell's volume moves by at most (area of its two surfaces) x envelope.
+    areas = [4 * np.pi * R**2 for R in RADII]
+    for k, t in enumerate(TISSUES):
+        bound = (areas[k] + (areas[k - 1] if k else 0.0)) * rep.envelope_mm
+        assert abs(vols[t] - rep.surface_volume_mm3[t]) <= bound, t
+    # Against the analytic shells: the icosphere lies inside its sphere by at most the sagitta s,
+    # so each enclosed volume is short by at most 4 pi R^2 s (plus the envelope term above).
+    exact = np.diff([0.0] + [4 / 3 * np.pi * R**3 for R in RADII])
+    for k, t in enumerate(TISSUES):
+        bound = sum(4 * np.pi * RADII[j] ** 2 * (_sagitta(RADII[j]) + rep.envelope_mm)
+                    for j in (k - 1, k) if j >= 0)
+        assert abs(vols[t] - exact[k]) <= bound, t
+    assert sum(vols.values()) == pytest.approx(mesh.tet_volumes().sum())
+
+
+def test_boundary_is_closed_sphere(meshed):
+    mesh, rep = meshed
+    faces, owner = mesh.boundary_faces()
+    assert _faces_closed_oriented(faces)
+    assert np.all(mesh.labels[owner] == Tissue.SCALP)
+    # Outward: the enclosed volume by the divergence theorem is the mesh volume.
+    p = mesh.nodes[faces]
+    enclosed = np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6
+    assert enclosed == pytest.approx(mesh.tet_volumes().sum(), rel=1e-9)
+    # Area of the polyhedral scalp surface (its faces are kept within the envelope), and of the
+    # sphere up to the chord deficit (<= 2 s / R relative, for sagitta s).
+    s = _surfaces()[Tissue.SCALP]
+    assert _area(mesh.nodes, faces) == pytest.approx(_area(s.vertices, s.faces), rel=0.01)
+    R = RADII[3]
+    assert _area(mesh.nodes, faces) == pytest.approx(4 * np.pi * R**2, rel=2 * _sagitta(R) / R + 0.01)
+    assert rep.interface_max_dev_mm[Tissue.SCALP] <= 1.01 * rep.envelope_mm
+
+
+def test_interfaces_are_closed_surfaces_on_their_spheres(meshed):
+    mesh, rep = meshed
+    for k in range(3):
+        inner, outer = TISSUES[k], TISSUES[k + 1]
+        f = mesh.interface_faces(inner, outer)
+        assert len(f) > 0
+        assert _faces_closed_oriented(f), inner
+        # Only adjacent tissues touch (no BRAIN-SKULL faces): the shells are closed.
+        for far in TISSUES[k + 2:]:
+            assert len(mesh.interface_faces(inner, far)) == 0
+        # The interface lies on its input surface (within the envelope; relocated nodes exactly).
+        r = np.linalg.norm(mesh.nodes[np.unique(f)], axis=1)
+        assert r.max() <= RADII[k] + 1e-9
+        assert r.min() >= RADII[k] - _sagitta(RADII[k]) - rep.envelope_mm
+        assert rep.interface_max_dev_mm[inner] <= 1.01 * rep.envelope_mm
+
+
+def test_quality_after_improvement(meshed):
+    from jaxhead.quality import tet_metrics
+
+    mesh, rep = meshed
+    q = tet_metrics(mesh.nodes, mesh.tets)
+    assert np.all(np.asarray(q["jacobian"]) > 0)
+    # The seed paper's limits: scaled Jacobian >= 0.2, condition number <= 3.
+    assert np.all(np.asarray(q["scaled_jacobian"]) >= 0.2)
+    assert np.all(np.asarray(q["condition"]) <= 3)
+    assert rep.improvement["below_0.2_after"] == 0
+
+
+def test_refinement_near_points(meshed):
+    mesh, _ = meshed
+    c = mesh.centroids()
+    h = np.cbrt(mesh.tet_volumes())
+    near = np.linalg.norm(c - REFINE_AT[0], axis=1) < 3.0
+    far = np.linalg.norm(c + REFINE_AT[0], axis=1) < 3.0  # the opposite side of the scalp
+    assert near.sum() > 10 and far.sum() > 3
+    # Target edges 1 mm near vs ~2-4 mm far: tets there are markedly smaller.
+    assert np.median(h[near]) < 0.7 * np.median(h[far])
+
+
+def test_missing_tissue_raises():
+    s = _surfaces()
+    del s[Tissue.SKULL]
+    with pytest.raises(ValueError, match="SKULL"):
+        tetrahedralize(s)
+
+
+def test_wrong_key_raises():
+    s = _surfaces()
+    s[Tissue.CSF], s[Tissue.SKULL] = s[Tissue.SKULL], s[Tissue.CSF]
+    with pytest.raises(ValueError, match="key each surface by its own tissue"):
+        tetrahedralize(s)
+
+
+def test_not_nested_raises():
+    s = _surfaces(radii=(8.0, 12.0, 10.0, 14.0))
+    with pytest.raises(ValueError, match="CSF surface is not inside the SKULL"):
+        tetrahedralize(s)
+
+
+def test_open_surface_raises():
+    s = _surfaces()
+    v, f = s[Tissue.CSF].vertices, s[Tissue.CSF].faces
+    s[Tissue.CSF] = Surface(v, f[1:], Tissue.CSF)
+    with pytest.raises(ValueError, match="CSF surface is not a closed"):
+        tetrahedralize(s)
+
+
+def test_inward_surface_raises():
+    s = _surfaces()
+    v, f = s[Tissue.BRAIN].vertices, s[Tissue.BRAIN].faces
+    s[Tissue.BRAIN] = Surface(v, f[:, ::-1], Tissue.BRAIN)
+    with pytest.raises(ValueError, match="BRAIN surface encloses volume"):
+        tetrahedralize(s)
+
+
+def test_envelope_too_large_raises():
+    with pytest.raises(ValueError, match="envelope_mm"):
+        tetrahedralize(_surfaces(), MeshConfig(envelope_mm=1.5))
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(edge_mm=-1.0), "edge_mm"),
+    (dict(edge_mm={"brain": 2.0}), "lacks"),
+    (dict(edge_mm={"bone": 2.0}), "bone"),
+    (dict(refine_points_mm=[[1.0, 2.0]]), "refine_points_mm"),
+    (dict(stop_energy=2.0), "stop_energy"),
+    (dict(improve="mmg"), "improve"),
+    (dict(threads=-1), "threads"),
+])
+def test_config_validation(kw, match):
+    with pytest.raises(ValueError, match=match):
+        MeshConfig(**kw)
+
+
+def test_config_accepts_names_and_tissues():
+    a = MeshConfig(edge_mm={"brain": 3, "csf": 1.5, "skull": 2, "scalp": 2.5}).edges()
+    b = MeshConfig(edge_mm={Tissue.BRAIN: 3, Tissue.CSF: 1.5, Tissue.SKULL: 2, Tissue.SCALP: 2.5}).edges()
+    assert a == b and a[Tissue.CSF] == 1.5
+    assert MeshConfig(refine_points_mm=np.zeros((2, 3))).refine_points_mm == ((0.0,) * 3,) * 2
