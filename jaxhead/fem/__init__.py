@@ -2,13 +2,17 @@
 
 from .assembly import MM_TO_M
 from .forward import ForwardModel, assemble, build_forward_model, jacobian, potentials, simulate
-from .solvers import AbstractSolver, Direct, linear_solve, pardiso_available
+from .solvers import (AbstractSolver, BlockCG, Direct, Jacobi, SmoothedAggregation, linear_solve,
+                      pardiso_available)
 
 __all__ = [
     "MM_TO_M",
     "AbstractSolver",
+    "BlockCG",
     "Direct",
     "ForwardModel",
+    "Jacobi",
+    "SmoothedAggregation",
     "assemble",
     "build_forward_model",
     "jacobian",
