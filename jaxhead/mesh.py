@@ -280,7 +280,7 @@ class MeshReport:
             meshed volumes, and the volumes the input surfaces enclose between them.
         envelope_mm: fTetWild's envelope used; min_gap_mm: smallest distance between
             consecutive input surfaces (at their vertices).
-        sizing_grid_mm: background sizing grid spacing (None: no sizing field, one edge length).
+        sizing_grid_mm: background sizing grid spacing (mm).
         ftetwild_tets: tets fTetWild returned (inside the scalp surface).
         dropped_outside: tets whose centroid lies outside the scalp surface (dropped).
         relabelled_near_interface: tets whose centroid lay within the envelope of a surface and
@@ -301,7 +301,7 @@ class MeshReport:
     surface_volume_mm3: dict
     envelope_mm: float
     min_gap_mm: float
-    sizing_grid_mm: float | None
+    sizing_grid_mm: float
     ftetwild_tets: int
     dropped_outside: int
     relabelled_near_interface: int
@@ -460,6 +460,9 @@ def _inside_count(surfs, Q) -> np.ndarray:
     return n
 
 
+_OUTSIDE_FACTOR = 4.0
+
+
 def sizing_field(surfs, cfg: MeshConfig, spacing_mm: float):
     """Background grid of target edge lengths for fTetWild (its ``--bg-mesh``).
 
@@ -479,9 +482,11 @@ def sizing_field(surfs, cfg: MeshConfig, spacing_mm: float):
     dims = np.ceil((hi - lo) / spacing_mm).astype(int) + 1
     grid = pv.ImageData(dimensions=tuple(int(d) for d in dims), spacing=(spacing_mm,) * 3, origin=tuple(lo))
     pts = np.asarray(grid.points)
-    # Tissue of each grid point (by the nested surfaces); outside the head counts as scalp.
+    # Tissue of each grid point (by the nested surfaces). fTetWild meshes the whole bounding
+    # box and discards the outside at the end: coarse tets there (4 x the largest edge) save
+    # time; the neighbourhood minimum below keeps the scalp's edge just outside the head.
     n_in = _inside_count(surfs, pts)
-    table = np.array([edges[Tissue.SCALP]] + [edges[TISSUES[4 - i]] for i in range(1, 5)])
+    table = np.array([_OUTSIDE_FACTOR * max(edges.values())] + [edges[TISSUES[4 - i]] for i in range(1, 5)])
     h = table[n_in].reshape(dims[::-1]).transpose(2, 1, 0)  # VTK points are x-fastest
     # The smallest edge in each 3x3x3 neighbourhood: a shell thinner than the grid spacing still
     # gets its own edge length at the grid points around it.
@@ -682,13 +687,9 @@ def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -
             f"surfaces ({min_gap:.3g} mm): fTetWild could merge two surfaces. Lower envelope_mm "
             "(or leave it None) or extract the surfaces with a larger min_gap_mm.")
     edges = cfg.edges()
-    need_field = len(set(edges.values())) > 1 or bool(cfg.refine_points_mm)
-    spacing = None
-    bg = None
-    if need_field:
-        spacing = cfg.sizing_grid_mm or max(
-            min(min(edges.values()), cfg.refine_edge_mm if cfg.refine_points_mm else math.inf), diag / 80)
-        bg = sizing_field(surfs, cfg, spacing)
+    spacing = cfg.sizing_grid_mm or max(
+        min(min(edges.values()), cfg.refine_edge_mm if cfg.refine_points_mm else math.inf), diag / 80)
+    bg = sizing_field(surfs, cfg, spacing)
     seconds["checks"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

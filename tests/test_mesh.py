@@ -204,3 +204,62 @@ def test_config_accepts_names_and_tissues():
     b = MeshConfig(edge_mm={Tissue.BRAIN: 3, Tissue.CSF: 1.5, Tissue.SKULL: 2, Tissue.SCALP: 2.5}).edges()
     assert a == b and a[Tissue.CSF] == 1.5
     assert MeshConfig(refine_points_mm=np.zeros((2, 3))).refine_points_mm == ((0.0,) * 3,) * 2
+
+
+@pytest.mark.slow
+def test_phantom_head_mesh():
+    """A 2 mm phantom head: four tissues, Table-2 clean, volumes and labels near the voxels."""
+    from jaxhead.phantom import make_head
+    from jaxhead.quality import quality_report
+    from jaxhead.segment.layers import make_layers
+    from jaxhead.surface import extract_surfaces
+    from jaxhead.volume import voxel_sizes
+
+    _, labels = make_head("mri", voxel_mm=2.0)
+    layers = make_layers(labels)
+    mesh, rep = tetrahedralize_reported(extract_surfaces(layers))
+    row = quality_report(mesh).table2_row
+    assert row["jacobian"] == 0 and row["scaled_jacobian"] == 0 and row["condition"] == 0
+    lab = np.asarray(layers.labels)
+    vox = float(np.prod(voxel_sizes(np.asarray(layers.affine))))
+    for t, v in mesh.tissue_volumes_mm3().items():
+        # Surfaces are smoothed marching-cubes level sets of 2 mm voxels: a shell's volume moves
+        # by about (its surfaces' area) x (a fraction of a voxel); 5 % covers the thin CSF.
+        assert v == pytest.approx((lab == int(t)).sum() * vox, rel=0.05), t
+    inv = np.linalg.inv(np.asarray(layers.affine))
+    ijk = np.rint(mesh.centroids() @ inv[:3, :3].T + inv[:3, 3]).astype(int)
+    agree = np.mean(lab[tuple(ijk.T)] == mesh.labels)
+    assert agree > 0.95  # boundary voxels are a large fraction at 2 mm
+    for t in TISSUES:
+        assert rep.interface_max_dev_mm[t] <= 1.01 * rep.envelope_mm
+
+
+def test_flat_tet_at_interface_takes_its_neighbours_side():
+    """A flat tet whose centroid lies just outside the BRAIN surface, but inside the envelope,
+    and whose other faces touch brain tets, is BRAIN (fTetWild's interface is its outer face)."""
+    from jaxhead.mesh import _Dist, label_tets
+
+    s = _surfaces(subdiv=4)
+    surfs = [(s[t].vertices, s[t].faces) for t in TISSUES]
+    dists = [_Dist(*x) for x in surfs]
+    env = 0.1
+    v, f = surfs[0]
+    p = v[f[0]]
+    centre = p.mean(axis=0)
+    n = np.cross(p[1] - p[0], p[2] - p[0])
+    n /= np.linalg.norm(n)  # outward (faces are counter-clockwise seen from outside)
+    tang = (p - centre) * 0.3  # a small triangle within the face's plane
+    a, b, c = centre + tang + 0.9 * env * n  # just outside, within the envelope
+    inner = centre - 2.0 * env * n
+    deep = [centre - 8.0 * env * n + t for t in tang]
+    nodes = np.array([a, b, c, inner, *deep])
+    tets = np.array([[0, 1, 2, 3],  # the flat tet: centroid 0.175 env outside
+                     [0, 1, 3, 4], [1, 2, 3, 5], [2, 0, 3, 6]])  # brain tets on its inner faces
+    centroid_out = dists[0](nodes[tets[:1]].mean(axis=1))[0]
+    assert 0 < centroid_out < env
+    labels, n_relabelled, conflicts = label_tets(nodes, tets, surfs, dists, env)
+    assert labels.tolist() == [1, 1, 1, 1]
+    assert n_relabelled == 1 and conflicts == 0
+    # Without the envelope (a surface known exactly), the centroid decides: CSF.
+    labels0, n0, _ = label_tets(nodes, tets, surfs, dists, 1e-6)
+    assert labels0[0] == int(Tissue.CSF) and n0 == 0
