@@ -1,0 +1,26 @@
+"""Segmentation of head MRI/CT: atlas, registration, EM with MRF and bias field, `segment`.
+
+(`layers.py`, the post-processing into nested layers, is a separate module: import it directly.)
+"""
+
+from .atlas import Atlas, build_atlas, cache_dir, default_atlas
+from .em import EMOptions, EMResult, MixtureParams, fit_mixture, infer_posteriors
+from .mrf import mean_field, neighbour_sum, potts_energy
+from .register import (
+    AffineTransform,
+    BSplineTransform,
+    RegisterConfig,
+    affine_register,
+    bspline_register,
+    register,
+    resample,
+    warp_volume,
+)
+from .segment import Segmentation, SegmentConfig, segment
+
+__all__ = [
+    "AffineTransform", "Atlas", "BSplineTransform", "EMOptions", "EMResult", "MixtureParams",
+    "RegisterConfig", "SegmentConfig", "Segmentation", "affine_register", "bspline_register",
+    "build_atlas", "cache_dir", "default_atlas", "fit_mixture", "infer_posteriors", "mean_field",
+    "neighbour_sum", "potts_energy", "register", "resample", "segment", "warp_volume",
+]

@@ -1,0 +1,262 @@
+"""Probabilistic atlases: a template image and one prior probability map per tissue class.  [host + jax]
+
+An atlas is built as the seed built its CT atlas from manual segmentations (Vonach et al. 2012): every
+labelled example is registered affinely to a reference, its intensities and one-hot labels are
+resampled (trilinearly, so boundaries become partial-volume fractions) onto the reference grid, and
+the results are averaged. A second round registers the examples to the first round's mean template,
+which removes the bias towards the reference subject (group-wise averaging, as in the construction
+of the ICBM/MNI templates).
+
+Affine registration only, on purpose: the spread of the aligned examples *is* the prior's
+uncertainty, which the EM's relaxation and MRF then resolve; a non-linear atlas would be over-
+confident about the anatomy of the examples.
+
+The default atlas of each modality is built from a phantom population (`jaxhead.phantom`) at first
+use and cached as .npz under ``$XDG_CACHE_HOME/jaxhead`` (or ``~/.cache/jaxhead``), written
+atomically; it needs no network.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from pathlib import Path
+from typing import Literal, Sequence
+
+import equinox as eqx
+import numpy as np
+
+from ..tissue import Tissue
+from ..volume import LabelMap, Volume, _check_affine
+from .register import AffineTransform, RegisterConfig, affine_register, resample
+
+log = logging.getLogger(__name__)
+
+Modality = Literal["mri", "ct"]
+MODALITIES = ("mri", "ct")
+N_CLASSES = len(Tissue)
+
+#: Bump when the default atlas recipe changes (invalidates cached files).
+ATLAS_VERSION = 1
+#: Seeds of the default atlas subjects start here; keep test/evaluation subjects below it.
+DEFAULT_ATLAS_SEED = 1000
+
+
+def check_modality(modality, name: str = "modality") -> str:
+    """Validate a modality string ("mri" or "ct", case-insensitive) and return it lower-case."""
+    if not isinstance(modality, str) or modality.lower() not in MODALITIES:
+        raise ValueError(f"`{name}` must be 'mri' or 'ct', got {modality!r}.")
+    return modality.lower()
+
+
+class Atlas(eqx.Module):
+    """A probabilistic atlas: template intensities, class priors, and their voxel -> world affine.
+
+    Arguments:
+        template: (x, y, z) mean intensity (MRI: scaled so brain median = 1; CT: Hounsfield units).
+        priors: (5, x, y, z) prior probability of each `Tissue` (BACKGROUND, BRAIN, CSF, SKULL,
+            SCALP), summing to 1 over the first axis.
+        affine: (4, 4) voxel -> world mm (RAS).
+        modality: "mri" or "ct".
+        n_subjects: number of examples averaged.
+    """
+
+    template: np.ndarray
+    priors: np.ndarray
+    affine: np.ndarray
+    modality: str = eqx.field(static=True)
+    n_subjects: int = eqx.field(static=True, default=1)
+
+    def __init__(self, template, priors, affine, modality, n_subjects=1):
+        self.template = np.asarray(template, dtype=np.float64)
+        self.priors = np.asarray(priors, dtype=np.float32)
+        self.affine = np.asarray(affine, dtype=np.float64)
+        self.modality = check_modality(modality)
+        self.n_subjects = int(n_subjects)
+
+    def __check_init__(self):
+        if self.template.ndim != 3:
+            raise ValueError(f"`Atlas.template` must be 3D (x, y, z), got shape {self.template.shape}.")
+        if self.priors.shape != (N_CLASSES, *self.template.shape):
+            raise ValueError(
+                f"`Atlas.priors` has shape {self.priors.shape} but the template is {self.template.shape}; "
+                f"pass one prior per Tissue class ({N_CLASSES}, *template.shape), ordered "
+                f"{[t.name for t in Tissue]}."
+            )
+        if not np.all(np.isfinite(self.template)) or not np.all(np.isfinite(self.priors)):
+            raise ValueError("`Atlas` template or priors contain NaN/Inf.")
+        if self.priors.min() < -1e-6:
+            raise ValueError(f"`Atlas.priors` has negative values (min {self.priors.min():.3g}); priors are probabilities.")
+        s = self.priors.sum(0)
+        if np.abs(s - 1).max() > 1e-3:
+            raise ValueError(
+                f"`Atlas.priors` must sum to 1 over classes at every voxel (max deviation "
+                f"{np.abs(s - 1).max():.3g}); normalise them with priors / priors.sum(0)."
+            )
+        _check_affine(self.affine, "Atlas")
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.template.shape
+
+    def template_volume(self) -> Volume:
+        """The template as a Volume (for registration)."""
+        return Volume(self.template, self.affine)
+
+    def save(self, path) -> Path:
+        """Write the atlas to an .npz file atomically (temp file in the same folder, then os.replace)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp.npz")
+        os.close(fd)
+        try:
+            np.savez_compressed(
+                tmp, template=self.template.astype(np.float32), priors=self.priors.astype(np.float16),
+                affine=self.affine, modality=np.array(self.modality), n_subjects=np.array(self.n_subjects),
+                version=np.array(ATLAS_VERSION),
+            )
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        return path
+
+    @classmethod
+    def load(cls, path) -> "Atlas":
+        """Read an atlas written by `Atlas.save`."""
+        with np.load(path) as z:
+            priors = z["priors"].astype(np.float32)
+            priors /= priors.sum(0, keepdims=True)  # float16 storage: renormalise (|change| < 1e-3)
+            return cls(z["template"], priors, z["affine"], str(z["modality"]), int(z["n_subjects"]))
+
+
+def _one_hot(labels: np.ndarray) -> np.ndarray:
+    return np.stack([(labels == k).astype(np.float32) for k in range(N_CLASSES)])
+
+
+def _normalise_intensity(volume: Volume, labels: LabelMap, modality: str) -> np.ndarray:
+    """MRI: divide by the median brain intensity (arbitrary units -> brain ~ 1). CT: HU as they are."""
+    if modality == "ct":
+        return volume.data
+    brain = volume.data[labels.labels == Tissue.BRAIN]
+    scale = float(np.median(brain)) if brain.size else float(np.percentile(volume.data, 99))
+    if scale <= 0:
+        raise ValueError("cannot normalise an MRI example: its brain median intensity is <= 0.")
+    return volume.data / scale
+
+
+def build_atlas(
+    volumes: Sequence[Volume], label_maps: Sequence[LabelMap], reference: Volume, *,
+    modality: Modality = "mri", cfg: RegisterConfig | None = None, rounds: int = 2,
+) -> Atlas:
+    """Build a probabilistic atlas from labelled examples registered affinely to a reference.
+
+    Arguments:
+        volumes: n example scans (any grids).
+        label_maps: n `LabelMap`s on the same grids as `volumes`.
+        reference: Volume defining the atlas grid (voxel size, extent, affine) and the first round's
+            registration target (e.g. one of the examples).
+        modality: "mri" or "ct" (MRI intensities are normalised to brain median = 1).
+        cfg: RegisterConfig of the affine stage (default: NMI, 8 and 4 mm levels; `bspline` is ignored).
+        rounds: 1 registers to `reference`; each further round registers to the previous mean template.
+    Returns:
+        Atlas on the reference grid.
+    """
+    modality = check_modality(modality)
+    if len(volumes) != len(label_maps) or len(volumes) == 0:
+        raise ValueError(
+            f"`volumes` ({len(volumes)}) and `label_maps` ({len(label_maps)}) must be non-empty and the same length."
+        )
+    for i, (v, lab) in enumerate(zip(volumes, label_maps)):
+        if not isinstance(v, Volume) or not isinstance(lab, LabelMap):
+            raise ValueError(f"example {i}: pass a Volume and a LabelMap, got {type(v).__name__}, {type(lab).__name__}.")
+        if v.shape != lab.shape or not np.allclose(v.affine, lab.affine):
+            raise ValueError(f"example {i}: the LabelMap grid {lab.shape} does not match its Volume {v.shape}.")
+    if not isinstance(reference, Volume):
+        raise ValueError(f"`reference` must be a Volume, got {type(reference).__name__}.")
+    if rounds < 1:
+        raise ValueError(f"`rounds` must be >= 1, got {rounds}.")
+    cfg = cfg or RegisterConfig(bspline=False)
+    target = reference
+    # Edge-pad every example at the high end to one common shape: the same voxels keep the same
+    # world positions, sampling (mode "nearest") is unchanged, and the registration compiles once.
+    common = tuple(max(v.shape[k] for v in volumes) for k in range(3))
+
+    def pad(a):
+        return np.pad(a, [(0, c - n) for c, n in zip(common, a.shape)], mode="edge")
+
+    normed = [pad(_normalise_intensity(v, lab, modality)) for v, lab in zip(volumes, label_maps)]
+    label_maps = [LabelMap(pad(lab.labels), lab.affine) for lab in label_maps]
+    for rnd in range(rounds):
+        template = np.zeros(reference.shape)
+        priors = np.zeros((N_CLASSES, *reference.shape), np.float32)
+        for i, (v, lab, data) in enumerate(zip(volumes, label_maps, normed)):
+            t: AffineTransform = affine_register(target, Volume(data, v.affine), cfg)
+            template += np.asarray(resample(data, v.affine, t, reference.shape, reference.affine))
+            priors += np.asarray(resample(_one_hot(lab.labels), v.affine, t, reference.shape, reference.affine),
+                                 dtype=np.float32)
+            log.info("atlas round %d: example %d registered", rnd + 1, i)
+        template /= len(volumes)
+        priors /= len(volumes)
+        target = Volume(template, reference.affine)
+    priors = np.clip(priors, 0, None)
+    priors /= priors.sum(0, keepdims=True)
+    return Atlas(template, priors, reference.affine, modality, len(volumes))
+
+
+def pad_volume(volume: Volume, margin_mm: float) -> Volume:
+    """A Volume grown by `margin_mm` of edge-replicated voxels on every side (same voxel size).
+
+    Used to give an atlas grid room for subjects larger than its reference.
+    """
+    vox = np.sqrt((volume.affine[:3, :3] ** 2).sum(0))
+    n = np.ceil(margin_mm / vox).astype(int)
+    data = np.pad(volume.data, [(k, k) for k in n], mode="edge")
+    affine = volume.affine.copy()
+    affine[:3, 3] = volume.affine[:3, :3] @ (-n) + volume.affine[:3, 3]
+    return Volume(data, affine)
+
+
+def cache_dir() -> Path:
+    """The user cache folder of jaxhead: $XDG_CACHE_HOME/jaxhead or ~/.cache/jaxhead."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "jaxhead"
+
+
+def default_atlas(
+    modality: Modality = "mri", *, voxel_mm: float = 2.0, n_subjects: int = 8, seed: int = DEFAULT_ATLAS_SEED,
+    cache: bool = True,
+) -> Atlas:
+    """The default atlas of a modality, built from phantom subjects and cached on disk.
+
+    Arguments:
+        modality: "mri" or "ct".
+        voxel_mm: atlas voxel size in mm.
+        n_subjects: phantom subjects averaged (seeds seed .. seed + n_subjects - 1).
+        seed: first subject's seed (default 1000, disjoint from evaluation subjects 0..999).
+        cache: read/write the cache file (``cache_dir()/atlas_<modality>_<voxel>mm_n<n>_s<seed>_v<version>.npz``).
+    Returns:
+        Atlas (built in about a minute at 2 mm on first use, then loaded from the cache).
+    """
+    modality = check_modality(modality)
+    if not voxel_mm > 0 or n_subjects < 1:
+        raise ValueError(f"`voxel_mm` must be > 0 and `n_subjects` >= 1, got {voxel_mm}, {n_subjects}.")
+    name = f"atlas_{modality}_{voxel_mm:g}mm_n{n_subjects}_s{seed}_v{ATLAS_VERSION}.npz"
+    path = cache_dir() / name
+    if cache and path.exists():
+        try:
+            return Atlas.load(path)
+        except Exception as err:  # a corrupt cache file is rebuilt, and said so
+            log.warning("atlas cache %s unreadable (%s); rebuilding it", path, err)
+    from ..phantom import make_population  # the phantom is only needed to build the default atlas
+
+    log.info("building the default %s atlas from %d phantom subjects at %g mm", modality, n_subjects, voxel_mm)
+    pop = make_population(n_subjects, modality, seed=seed, voxel_mm=voxel_mm)
+    vols = [v for v, _ in pop]
+    labs = [lab for _, lab in pop]
+    atlas = build_atlas(vols, labs, pad_volume(vols[0], 16.0), modality=modality)
+    if cache:
+        atlas.save(path)
+        log.info("default atlas cached at %s", path)
+    return atlas

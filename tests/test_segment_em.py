@@ -1,0 +1,208 @@
+"""EM with priors, MRF and bias field: against a NumPy EM, known parameters, and invariants."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from jaxhead.segment.em import (
+    EMOptions,
+    bias_field,
+    bias_terms,
+    fit_mixture,
+    gaussian_smooth,
+    grid_coordinates,
+    infer_posteriors,
+)
+from jaxhead.segment.mrf import mean_field, neighbour_sum, potts_energy
+
+SHAPE = (24, 20, 22)
+
+
+def two_class_data(seed=0, shape=SHAPE):
+    rng = np.random.default_rng(seed)
+    lab = (rng.random(shape) < 0.3).astype(int)
+    mu, sd = np.array([1.0, 3.0]), np.array([0.5, 0.7])
+    return lab, rng.normal(mu[lab], sd[lab]), mu, sd
+
+
+def numpy_em(y, n_iter, var_floor=1e-4):
+    """Plain two-Gaussian EM in NumPy, same start as fit_mixture (standardised data, mean +- 1 sd,
+    variance / 2, equal weights): an independent implementation to compare against."""
+    c, s = y.mean(), y.std() + np.finfo(float).eps
+    x = ((y - c) / s).ravel()
+    mu = np.array([x.mean() - x.std(), x.mean() + x.std()])
+    var = np.full(2, x.var() / 2)
+    w = np.array([0.5, 0.5])
+    for _ in range(n_iter):
+        dens = w / np.sqrt(2 * np.pi * var) * np.exp(-0.5 * (x[:, None] - mu) ** 2 / var)
+        r = dens / dens.sum(1, keepdims=True)
+        n = r.sum(0)
+        mu = (r * x[:, None]).sum(0) / n
+        var = np.maximum((r * (x[:, None] - mu) ** 2).sum(0) / n, var_floor)
+        w = n / n.sum()
+    return mu * s + c, var * s**2, w
+
+
+def test_em_matches_numpy_reference_and_known_parameters():
+    lab, y, mu, sd = two_class_data()
+    # one class with two Gaussians and a flat prior is a plain GMM
+    opts = EMOptions(component_class=(0, 0), n_classes=1, max_iter=30, min_iter=30)
+    res = fit_mixture(jnp.asarray(y), jnp.ones((1, *SHAPE)), opts)
+    ref_mu, ref_var, ref_w = numpy_em(y, 30)
+    assert int(res.n_iter) == 30
+    # same algorithm, float64, different summation order: agreement to ~1e-10 relative
+    np.testing.assert_allclose(res.params.means, ref_mu, rtol=1e-9)
+    np.testing.assert_allclose(res.params.variances, ref_var, rtol=1e-9)
+    np.testing.assert_allclose(res.params.weights, ref_w, rtol=1e-9)
+    # and the truth within sampling error (n ~ 3000 and 7500 samples: se(mean) ~ 0.01; the
+    # overlap of the two Gaussians biases the variances by a few %)
+    np.testing.assert_allclose(res.params.means, mu, atol=0.05)
+    np.testing.assert_allclose(np.sqrt(res.params.variances), sd, rtol=0.06)
+    np.testing.assert_allclose(res.params.weights, [0.7, 0.3], atol=0.02)
+
+
+def test_em_with_spatial_priors_recovers_parameters_and_labels():
+    # Labels drawn from smooth spatial priors (the model's own generative process), then data.
+    rng = np.random.default_rng(1)
+    p1 = ndimage.gaussian_filter(rng.random(SHAPE), 3.0)
+    p1 = 0.05 + 0.9 * (p1 - p1.min()) / np.ptp(p1)
+    lab = (rng.random(SHAPE) < p1).astype(int)
+    mu, sd = np.array([1.0, 3.0]), np.array([0.5, 0.7])
+    y = rng.normal(mu[lab], sd[lab])
+    prior = np.stack([1 - p1, p1])
+    opts = EMOptions(component_class=(0, 1), n_classes=2, tol=1e-10, max_iter=300, prior_floor=0.0)
+    res = fit_mixture(jnp.asarray(y), jnp.asarray(prior), opts)
+    assert bool(res.converged)
+    # maximum likelihood under the true model: within sampling error (se(mean) ~ 0.01)
+    np.testing.assert_allclose(res.params.means, mu, atol=0.04)
+    np.testing.assert_allclose(np.sqrt(res.params.variances), sd, rtol=0.04)
+    post = np.asarray(res.posteriors)
+    np.testing.assert_allclose(post.sum(0), 1.0, atol=1e-12)
+    # the posterior is the Bayes classifier: it beats the prior alone and the likelihood alone
+    acc = (post.argmax(0) == lab).mean()
+    assert acc > ((p1 > 0.5) == lab).mean() and acc > 0.9
+
+
+def test_bias_field_recovered_on_synthetic_gradient():
+    lab, y, mu, sd = two_class_data(2)
+    x, _, z = grid_coordinates(SHAPE, np.float64)
+    xx, zz = np.asarray(x)[:, None, None], np.asarray(z)[None, None, :]
+    true_b = 0.8 * xx - 0.3 * xx * zz + 0 * y  # log-domain gradient, in the span of degree 2
+    opts = EMOptions(component_class=(0, 0), n_classes=1, tol=1e-10, max_iter=500, bias_degree=2,
+                     bias_classes=(0,))
+    res = fit_mixture(jnp.asarray(y + true_b), jnp.ones((1, *SHAPE)), opts)
+    # The field is defined up to a constant (absorbed by the means).
+    err = np.asarray(res.bias_field) - true_b
+    err -= err.mean()
+    # 10^4 voxels, 9 coefficients, noise sd ~0.6: each coefficient has se ~0.6 / sqrt(N / 3) ~ 0.01,
+    # so the field's rms error is ~0.02 and its maximum (at the corners, where the basis peaks) ~0.1
+    # against a 1.1 peak-to-peak field
+    assert np.sqrt((err**2).mean()) < 0.03 and np.abs(err).max() < 0.12, np.abs(err).max()
+    np.testing.assert_allclose(res.params.means, mu + (true_b.mean()), atol=0.05)
+    # without the bias model the same data fit worse (the gradient inflates the variances)
+    plain = fit_mixture(jnp.asarray(y + true_b), jnp.ones((1, *SHAPE)),
+                        EMOptions(component_class=(0, 0), n_classes=1, tol=1e-10, max_iter=500))
+    assert float(plain.log_likelihood) < float(res.log_likelihood)
+
+
+def test_bias_basis_is_legendre_without_constant():
+    from numpy.polynomial import legendre
+
+    assert len(bias_terms(2)) == 9 and len(bias_terms(4)) == 34
+    assert (bias_terms(4).sum(1) >= 1).all() and (bias_terms(4).sum(1) <= 4).all()
+    coords = grid_coordinates((7, 5, 6), np.float64)
+    terms = bias_terms(3)
+    rng = np.random.default_rng(0)
+    c = rng.normal(size=len(terms))
+    got = np.asarray(jax.jit(bias_field, static_argnums=2)(jnp.asarray(c), coords, 3))
+    x, y, z = (np.asarray(a) for a in coords)
+    want = np.zeros((7, 5, 6))
+    for ck, (a, b, d) in zip(c, terms):
+        ea, eb, ed = (np.eye(4)[k] for k in (a, b, d))
+        want += ck * np.einsum("i,j,k->ijk", legendre.legval(x, ea), legendre.legval(y, eb), legendre.legval(z, ed))
+    np.testing.assert_allclose(got, want, atol=1e-12)
+
+
+def test_neighbour_sum_and_smoothing_match_scipy():
+    rng = np.random.default_rng(3)
+    p = rng.random((2, 7, 8, 9))
+    k = np.zeros((3, 3, 3))
+    k[0, 1, 1] = k[2, 1, 1] = k[1, 0, 1] = k[1, 2, 1] = k[1, 1, 0] = k[1, 1, 2] = 1
+    want = np.stack([ndimage.convolve(q, k, mode="constant") for q in p])
+    np.testing.assert_allclose(jax.jit(neighbour_sum)(jnp.asarray(p)), want, atol=1e-12)
+    got = np.asarray(jax.jit(gaussian_smooth, static_argnums=1)(jnp.asarray(p), 1.2))
+    ref = np.stack([ndimage.gaussian_filter(q, 1.2, mode="constant", truncate=3 / 1.2 * 1.2) for q in p])
+    # scipy truncates at ceil(truncate * sigma) = 4 voxels (we use ceil(3 sigma) = 4 too) and
+    # normalises the same way
+    np.testing.assert_allclose(got, ref, atol=1e-12)
+
+
+def test_mrf_removes_isolated_mislabels():
+    shape = (16, 16, 16)
+    truth = np.zeros(shape, int)
+    truth[8:] = 1
+    rng = np.random.default_rng(4)
+    flips = np.zeros(shape, bool)
+    idx = rng.choice(np.prod(shape), 60, replace=False)
+    flips.flat[idx] = True
+    noisy = np.where(flips, 1 - truth, truth)
+    # moderate evidence (log-likelihood ratio 1) for the noisy labels
+    ll = np.stack([np.where(noisy == 0, 0.0, -1.0), np.where(noisy == 1, 0.0, -1.0)])
+    no_mrf = np.asarray(mean_field(jnp.asarray(ll), 0.0, 0.0, 5)).argmax(0)
+    assert (no_mrf != truth).sum() == flips.sum()
+    q = np.asarray(mean_field(jnp.asarray(ll), 0.0, 1.0, 5))
+    lab = q.argmax(0)
+    # An isolated flip has >= 5 of 6 neighbours voting against it (beta * ~5 > 1): all corrected,
+    # and the flat boundary (5 of 6 neighbours agree on each side) is kept.
+    assert (lab != truth).sum() == 0
+    assert int(potts_energy(jnp.asarray(lab))) < int(potts_energy(jnp.asarray(noisy)))
+    # the same inside the EM: two overlapping Gaussians (means 2 sd apart: ~16 % of the voxels
+    # are closer to the other mean), so the likelihood alone mislabels many isolated voxels
+    y = np.where(truth == 1, 2.0, 0.0) + 1.0 * rng.standard_normal(shape)
+    prior = np.full((2, *shape), 0.5)
+    # start from the right means (a flat prior cannot break the symmetry between the classes)
+    from jaxhead.segment.em import MixtureParams
+
+    init = MixtureParams(jnp.asarray([0.0, 2.0]), jnp.asarray([1.0, 1.0]), jnp.ones(2), jnp.zeros(0))
+    errors = {}
+    for beta in (0.0, 1.0):
+        opts = EMOptions(component_class=(0, 1), n_classes=2, beta=beta, max_iter=20, min_iter=20)
+        res = fit_mixture(jnp.asarray(y), jnp.asarray(prior), opts, init)
+        errors[beta] = int((np.asarray(res.posteriors).argmax(0) != truth).sum())
+    assert errors[0.0] > 400 and errors[1.0] < errors[0.0] / 10, errors
+
+
+def test_jit_equals_eager_and_float32_path():
+    lab, y, _, _ = two_class_data(5, (5, 4, 6))
+    prior = np.stack([np.where(lab == 0, 0.7, 0.3), np.where(lab == 1, 0.7, 0.3)])
+    opts = EMOptions(component_class=(0, 1, 1), n_classes=2, beta=0.3, relax=0.4, relax_after=1,
+                     relax_sigma_vox=0.5, max_iter=2, min_iter=2)
+    a = fit_mixture(jnp.asarray(y), jnp.asarray(prior), opts)
+    with jax.disable_jit():
+        b = fit_mixture(jnp.asarray(y), jnp.asarray(prior), opts)
+    np.testing.assert_allclose(a.posteriors, b.posteriors, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(a.params.means, b.params.means, rtol=1e-10)
+    # float32 in -> float32 out, equal to float64 within float32 rounding of 4 iterations
+    c = fit_mixture(jnp.asarray(y, jnp.float32), jnp.asarray(prior, jnp.float32), opts)
+    assert c.posteriors.dtype == jnp.float32 and c.params.means.dtype == jnp.float32
+    np.testing.assert_allclose(c.params.means, a.params.means, rtol=1e-4, atol=1e-4)  # ~100 eps32
+    # infer_posteriors at the fitted parameters reproduces a normalised posterior map
+    p = infer_posteriors(jnp.asarray(y), jnp.asarray(prior), a.params, opts, 2)
+    np.testing.assert_allclose(np.asarray(p).sum(0), 1.0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(component_class=(0, 2), n_classes=2), "must name classes"),
+        (dict(component_class=(0, 0), n_classes=2), "no Gaussian"),
+        (dict(component_class=(1, 0), n_classes=2), "sorted"),
+        (dict(component_class=(0, 1), n_classes=2, relax=1.0), "relax"),
+        (dict(component_class=(0, 1), n_classes=2, beta=-1.0), "beta"),
+    ],
+)
+def test_em_options_validation(kw, match):
+    with pytest.raises(ValueError, match=match):
+        EMOptions(**kw)
