@@ -135,8 +135,10 @@ class _MKLPardiso:
 
     name = "pardiso"
 
-    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int):
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, threads: int | None):
         self._fn = _mkl_pardiso()
+        self.threads = threads
+        self._threads()
         self.pt = np.zeros(64, dtype=np.int64)
         self.iparm = np.zeros(64, dtype=np.int32)
         self.iparm[0] = 1     # user-supplied iparm
@@ -184,7 +186,12 @@ class _MKLPardiso:
            zero.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
            zero.ctypes.data_as(ctypes.POINTER(ctypes.c_double)), ctypes.byref(err))
 
+    def _threads(self):
+        if self.threads is not None:
+            _mkl_set_pardiso_threads(self.threads)
+
     def factor(self, values: np.ndarray) -> None:
+        self._threads()
         self._data = np.ascontiguousarray(values, dtype=np.float64)
         b = np.zeros((self.n, 1))
         err = self._call(22, self._data, b, b.copy())
@@ -192,6 +199,7 @@ class _MKLPardiso:
             raise _factor_error(err, "PARDISO")
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
+        self._threads()
         b = np.asfortranarray(rhs, dtype=np.float64)
         x = np.zeros_like(b, order="F")
         err = self._call(33, self._data, b, x)
@@ -269,6 +277,12 @@ class DirectHandle:
         values = np.asarray(values, dtype=np.float64)
         rhs = np.asarray(rhs, dtype=np.float64)
         batch = np.broadcast_shapes(values.shape[:-1], rhs.shape[:-2])
+        if not values.any():
+            # An all-zero matrix is never an FEM system (the diagonal is > 0 for sigma > 0). It is
+            # the placeholder that optimistix's trust-region solvers (LevenbergMarquardt, Dogleg)
+            # evaluate in their first step and then mask out; raising there would abort a valid
+            # fit. Return zeros for it; every other singular matrix still raises below.
+            return np.zeros(batch + rhs.shape[-2:], dtype=np.float64)
         k = rhs.shape[-1]
         vb = values.reshape(-1, self.nnz)
         out = np.empty(batch + rhs.shape[-2:], dtype=np.float64)
@@ -331,7 +345,14 @@ def _mkl_pardiso():
                        ctypes.c_void_p, ctypes.c_void_p, i32p]
         fn.restype = None
         _MKL.append(fn)
+        _MKL.append(lib)
     return _MKL[0]
+
+
+def _mkl_set_pardiso_threads(n: int) -> None:
+    """Threads MKL uses for PARDISO only (MKL_Domain_Set_Num_Threads, MKL_DOMAIN_PARDISO = 4)."""
+    _mkl_pardiso()
+    _MKL[1].MKL_Domain_Set_Num_Threads(ctypes.c_int(int(n)), ctypes.c_int(4))
 
 
 def pardiso_available() -> bool:
@@ -354,14 +375,19 @@ class Direct(AbstractSolver):
 
     Arguments:
         backend: "auto" (PARDISO if `pypardiso` loads, else SciPy), "pardiso" or "scipy".
+        threads: PARDISO threads (None: MKL's default, all cores). On a machine shared with
+            other jobs, 1 avoids OpenMP threads spinning against each other.
     """
 
     backend: Literal["auto", "pardiso", "scipy"] = eqx.field(static=True, default="auto")
+    threads: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if self.backend not in ("auto", "pardiso", "scipy"):
             raise ValueError(
                 f"`Direct.backend` = {self.backend!r}; use 'auto', 'pardiso' or 'scipy'.")
+        if self.threads is not None and int(self.threads) < 1:
+            raise ValueError(f"`Direct.threads` must be >= 1 or None, got {self.threads}.")
 
     def init(self, pattern: Pattern, values: np.ndarray | None = None) -> DirectState:
         name = self.backend
@@ -374,7 +400,7 @@ class Direct(AbstractSolver):
             if not pardiso_available():
                 raise ValueError("Direct(backend='pardiso') needs `pip install pypardiso` "
                                  "(Intel MKL); or use backend='auto'/'scipy'.")
-            backend = _MKLPardiso(pattern.indptr, pattern.indices, pattern.n)
+            backend = _MKLPardiso(pattern.indptr, pattern.indices, pattern.n, self.threads)
         else:
             backend = _ScipyLU(pattern)
         return DirectState(DirectHandle(backend, pattern.n, pattern.nnz))
