@@ -5,6 +5,7 @@ composes them into a :class:`RunConfig` and loads it from a TOML file, rejecting
 closest valid key suggested.
 """
 
+import collections.abc
 import dataclasses
 import difflib
 import tomllib
@@ -14,8 +15,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from .electrodes import ElectrodeConfig
+from .mesh import MeshConfig
+from .protocol import ProtocolConfig
 from .segment.layers import LayerConfig
 from .surface import SurfaceConfig
+from .tissue import DEFAULT_SIGMA_S_M, TISSUE_NAMES
 
 Modality = Literal["mri", "ct"]
 
@@ -54,6 +59,43 @@ class InputConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class ExportConfig:
+    """Mesh files to write: any of "vtu" (ParaView), "msh" (Gmsh 2.2), "mat" (MATLAB/EIDORS)."""
+
+    formats: tuple[Literal["vtu", "msh", "mat"], ...] = ("vtu", "msh", "mat")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ForwardConfig:
+    """The forward simulation of the pipeline.
+
+    Arguments:
+        sigma_s_m: conductivity per tissue in S/m (keys brain, csf, skull, scalp); missing keys
+            take the defaults of `jaxhead.tissue.DEFAULT_SIGMA_S_M`.
+        solver: "direct" (sparse factorisation on the host) or "cg" (pure-JAX block CG).
+        plot_injection: which injection (row of `Protocol.injections`) the scalp PNG shows.
+    """
+
+    sigma_s_m: dict[str, float] = field(default_factory=lambda: dict(zip(TISSUE_NAMES, DEFAULT_SIGMA_S_M)))
+    solver: Literal["direct", "cg"] = "direct"
+    plot_injection: int = 0
+
+    def __post_init__(self):
+        for k, v in self.sigma_s_m.items():
+            if k not in TISSUE_NAMES:
+                raise ValueError(f"[forward] `sigma_s_m` has key {k!r}; use {list(TISSUE_NAMES)}.")
+            if not v > 0:
+                raise ValueError(f"[forward] `sigma_s_m.{k}` must be > 0 S/m, got {v}.")
+
+    def sigma(self):
+        """(4,) conductivities in S/m, ordered BRAIN, CSF, SKULL, SCALP."""
+        import numpy as np
+
+        d = dict(zip(TISSUE_NAMES, DEFAULT_SIGMA_S_M)) | dict(self.sigma_s_m)
+        return np.array([d[n] for n in TISSUE_NAMES], dtype=np.float64)
+
+
+@dataclass(frozen=True, kw_only=True)
 class RunConfig:
     """A whole run: where to write, which stages, and each stage's config.
 
@@ -69,6 +111,11 @@ class RunConfig:
     input: InputConfig = field(default_factory=InputConfig)
     layers: LayerConfig = field(default_factory=LayerConfig)
     surfaces: SurfaceConfig = field(default_factory=SurfaceConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    export: ExportConfig = field(default_factory=ExportConfig)
+    electrodes: ElectrodeConfig = field(default_factory=ElectrodeConfig)
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    forward: ForwardConfig = field(default_factory=ForwardConfig)
 
     @property
     def run_dir(self) -> Path:
@@ -114,7 +161,7 @@ def _convert(value: Any, tp: Any, where: str) -> Any:
         if len(args) != len(value):
             raise ValueError(f"`{where}` needs {len(args)} entries, got {len(value)}.")
         return tuple(_convert(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(args, value)))
-    if origin in (dict, typing.Mapping) or tp in (dict,):
+    if origin in (dict, collections.abc.Mapping) or tp in (dict,):
         if not isinstance(value, dict):
             raise ValueError(f"`{where}` must be a table, got {value!r}.")
         kt, vt = (typing.get_args(tp) + (Any, Any))[:2]

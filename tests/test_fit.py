@@ -37,7 +37,7 @@ def test_recovers_conductivities_from_noisy_data(sphere_model):
     assert rel[3] < 0.02
     assert res.correlation.shape == (4, 4)
     np.testing.assert_allclose(np.diag(res.correlation), 1.0, atol=1e-9)
-    assert res.n_forward > res.n_steps
+    assert res.n_forward >= res.n_steps > 0
 
 
 def test_exact_data_fit_is_exact_and_partial_fit(sphere_model):
