@@ -8,9 +8,10 @@ so every thickness is independent of the voxel size):
 - scalp 3-8 mm (skin, subcutaneous fat, and galea/temporal muscle where it is thick),
 - skull 4-9 mm with an outer and an inner table of compact bone around a lower-density diploe,
 - CSF 1-5 mm (the thinnest places are ~1 mm, thinner than a typical voxel),
-- brain: a grey-matter ribbon (>= 2 mm) around a white-matter core whose boundary is folded by a
-  band-limited random field (12-22 mm wavelengths, "thresholded smooth noise"), deep grey nuclei,
-  and CSF-filled ventricles (two bent lateral ventricles and a thin third ventricle).
+- brain: a grey-matter ribbon (3-4 mm) around a white-matter core, folded by grey "sulci" 14-20 mm
+  deep along the zero set of a band-limited random field (12-22 mm wavelengths: thresholded
+  smooth noise, a labyrinth of sheets), so white matter forms gyral cores; deep grey nuclei; and
+  CSF-filled ventricles (two bent lateral ventricles and a thin third ventricle).
 
 Each thickness is a smooth random field (a low-order cosine series per seed) stretched so that every
 range is reached somewhere on the head. Different seeds give different subjects (size, shape, pose
@@ -37,6 +38,7 @@ import logging
 import math
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Literal
 
 import numpy as np
 from scipy import ndimage
@@ -48,7 +50,7 @@ __all__ = ["Structure", "STRUCTURE_TISSUE", "make_head", "make_population", "str
 
 log = logging.getLogger(__name__)
 
-Modality = str  # "mri" | "ct"
+Modality = Literal["mri", "ct"]
 
 #: Background margin (mm) between the head and every face of a derived field of view.
 MARGIN_MM = 10.0
@@ -56,8 +58,9 @@ MARGIN_MM = 10.0
 SUPERSAMPLE = 2
 #: Random fields are cosine series on the cube [-L, L]^3 of the head frame (mm).
 _FIELD_HALF_MM = 160.0
-#: Largest grid make_head builds (voxels); a 1 mm head is ~1.1e7.
-_MAX_VOXELS = 1.2e8
+#: Largest grid make_head builds (voxels): a 1 mm head with neck is ~1.1e7 voxels and peaks at
+#: ~1.1 GB (~100 bytes per voxel), so this is ~6 GB.
+_MAX_VOXELS = 6e7
 #: Sulci where |fold field| < this (unit-variance field, gradient ~0.4/mm: ~4 mm wide sheets).
 _SULCUS_WIDTH = 0.8
 #: Default noise: MRI as a fraction of white-matter intensity, CT in HU.
@@ -259,10 +262,6 @@ class _Subject:
     bbox: np.ndarray  # (2, 3) head-frame bounding box (mm) with neck
     bbox_no_neck: np.ndarray  # (2, 3) without neck
 
-    def to_local(self, h: np.ndarray) -> np.ndarray:
-        """Head-frame points (n, 3) -> local frame (n, 3)."""
-        return h @ self.rot
-
     def cranium_r(self, xl, yl, zl):
         """Normalised radius |q| (float32) of local points, q = local / semi-axes (egg-shaped)."""
         ax, ay, az_up, az_lo = (np.float32(a) for a in self.axes)
@@ -447,7 +446,8 @@ def _grid_shape(sub: _Subject, vox: np.ndarray, shape, neck: bool) -> tuple[tupl
     if float(np.prod(shape)) > _MAX_VOXELS:
         raise ValueError(
             f"the phantom grid would have {np.prod(shape):.3g} voxels (shape {shape}); "
-            f"that is more than {_MAX_VOXELS:.2g}; use larger `voxel_mm` or a smaller `shape`.")
+            f"that is more than {_MAX_VOXELS:.2g} (~100 bytes each while building); use a larger "
+            "`voxel_mm` or a smaller `shape`.")
     return shape, centre
 
 
