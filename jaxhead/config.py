@@ -18,6 +18,7 @@ from typing import Any, Literal
 from .electrodes import ElectrodeConfig
 from .mesh import MeshConfig
 from .protocol import ProtocolConfig
+from .segment import SegmentConfig
 from .segment.layers import LayerConfig
 from .surface import SurfaceConfig
 from .tissue import DEFAULT_SIGMA_S_M, TISSUE_NAMES
@@ -109,6 +110,7 @@ class RunConfig:
     out_dir: str | None = None
     stages: tuple[str, ...] | None = None
     input: InputConfig = field(default_factory=InputConfig)
+    segment: SegmentConfig = field(default_factory=SegmentConfig)
     layers: LayerConfig = field(default_factory=LayerConfig)
     surfaces: SurfaceConfig = field(default_factory=SurfaceConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)

@@ -38,6 +38,37 @@ def run_input(cfg: RunConfig, subject: Subject) -> dict:
             "has_labels": labels is not None}
 
 
+def run_segment(cfg: RunConfig, subject: Subject) -> dict:
+    """Atlas registration + EM/MRF segmentation into brain, CSF, skull, scalp (and Dice vs truth)."""
+    import dataclasses
+
+    import numpy as np
+
+    from . import io
+    from .plot import plot_overlay
+    from .segment import segment
+    from .tissue import TISSUES
+
+    volume = io.load_volume(subject.file("input", "scan.nii.gz"))
+    seg_cfg = dataclasses.replace(cfg.segment, modality=subject.modality)
+    seg = segment(volume, None, seg_cfg)
+    out = subject.dir("segment")
+    io.save_labels(seg.labels, out / "labels.nii.gz")
+    plot_overlay(volume, seg.labels, out / "segmentation.png",
+                 title=f"{subject.name}: {subject.modality.upper()} segmentation")
+    summary = {"voxels": {t.name.lower(): int((seg.labels.labels == int(t)).sum()) for t in TISSUES}}
+    truth_path = subject.file("input", "labels.nii.gz")
+    if truth_path.exists():
+        truth = io.load_labels(truth_path).labels
+        dice = {}
+        for t in TISSUES:
+            a, b = seg.labels.labels == int(t), truth == int(t)
+            dice[t.name.lower()] = float(2 * (a & b).sum() / max(a.sum() + b.sum(), 1))
+        summary["dice_vs_truth"] = dice
+        _write_text(out / "dice.txt", "".join(f"{k:<6} {v:.4f}\n" for k, v in dice.items()))
+    return summary
+
+
 def _labels_for_layers(cfg: RunConfig, subject: Subject):
     """The label map the layers stage starts from: the segmentation if it ran, else the input's."""
     from . import io
@@ -185,6 +216,7 @@ def _solver(name: str):
 #: Stage name -> function, in pipeline order.
 STAGES = {
     "input": run_input,
+    "segment": run_segment,
     "layers": run_layers,
     "surfaces": run_surfaces,
     "mesh": run_mesh,
