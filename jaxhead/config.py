@@ -97,6 +97,42 @@ class ForwardConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class InverseConfig:
+    """The inverse stage: a perturbation reconstruction and a conductivity fit on simulated data.
+
+    Arguments:
+        centre_mm: centre of the spherical brain perturbation (world mm); None puts it 40 % of the
+            way from the brain's centroid to its top (a cortical target).
+        radius_mm: perturbation radius (mm); rel_change: its relative conductivity change.
+        noise_percent: Gaussian noise per channel, % of the baseline voltage (the seed paper: 0.5).
+        cell_mm: reconstruction grid cell size (mm; the Jacobian is summed into brain cells).
+        method: "tsvd" or "tikhonov" (truncation / lambda chosen by GCV).
+        fit: also fit the four tissue conductivities to noisy simulated voltages.
+        fit_init_s_m: the fit's starting conductivities (brain, csf, skull, scalp).
+        seed: noise seed.
+    """
+
+    centre_mm: tuple[float, float, float] | None = None
+    radius_mm: float = 15.0
+    rel_change: float = 0.2
+    noise_percent: float = 0.5
+    cell_mm: float = 8.0
+    method: Literal["tsvd", "tikhonov"] = "tsvd"
+    fit: bool = True
+    fit_init_s_m: tuple[float, float, float, float] = (0.2, 1.0, 0.03, 0.3)
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("radius_mm", "cell_mm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"[inverse] `{name}` must be > 0, got {getattr(self, name)}.")
+        if not self.rel_change > -1:
+            raise ValueError(f"[inverse] `rel_change` must be > -1, got {self.rel_change}.")
+        if not self.noise_percent >= 0:
+            raise ValueError(f"[inverse] `noise_percent` must be >= 0, got {self.noise_percent}.")
+
+
+@dataclass(frozen=True, kw_only=True)
 class RunConfig:
     """A whole run: where to write, which stages, and each stage's config.
 
@@ -118,6 +154,7 @@ class RunConfig:
     electrodes: ElectrodeConfig = field(default_factory=ElectrodeConfig)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     forward: ForwardConfig = field(default_factory=ForwardConfig)
+    inverse: InverseConfig = field(default_factory=InverseConfig)
 
     @property
     def run_dir(self) -> Path:
