@@ -23,7 +23,7 @@ from ..tissue import TISSUES
 from .assembly import (TET_PAIRS, Pattern, scatter_add, scatter_plan, tet_geometry,
                        tet_stiffness, tet_volumes, to_metres)
 from .cem import cem_entries, cem_values, electrode_rhs, reference_electrode, split_solution
-from .solvers import AbstractSolver, Direct, PatternArrays, linear_solve
+from .solvers import AbstractSolver, Direct, PatternArrays, linear_solve, matvecs
 
 
 def _is_tracer(x) -> bool:
@@ -44,11 +44,15 @@ class ForwardModel(eqx.Module):
         face_electrode: (n_eface,) electrode of each face.
         free_faces: (n_free,) faces not on the ground electrode.
         contact_impedance: (n_elec,) default contact impedances in Ohm m^2.
-        order, targets: scatter plan of the element entries into the stored matrix entries.
-        tet_by_tissue: (n_tets,) tets sorted by tissue; `tissue_bounds` slices it.
+        order, targets: scatter plan of the tets' element entries (10 per tet) into the stored
+            matrix entries (`jaxhead.fem.assembly.scatter_plan`).
+        cem_targets: stored entry of each CEM contribution (`jaxhead.fem.cem.cem_entries`).
+        tissue_values: (4, nnz) stored values of each tissue's unit-conductivity stiffness
+            at `nodes`: with per-tissue sigma and the default nodes the stiffness is
+            sum_t sigma_t tissue_values[t], no element loop.
         pattern: the matrix pattern's arrays (for the mat-vec that derivatives use).
         solver, solver_state: the solver object and what its `init` returned.
-        n_nodes, n_elec, nnz: sizes; tissue_bounds: (5,) start of each tissue in `tet_by_tissue`.
+        n_nodes, n_elec, nnz: sizes.
         electrode_names: one name per electrode.
     """
 
@@ -58,17 +62,17 @@ class ForwardModel(eqx.Module):
     faces: np.ndarray
     face_electrode: np.ndarray
     free_faces: np.ndarray
-    contact_impedance: np.ndarray
-    order: np.ndarray
-    targets: np.ndarray
-    tet_by_tissue: np.ndarray
+    contact_impedance: jax.Array
+    order: jax.Array
+    targets: jax.Array
+    cem_targets: jax.Array
+    tissue_values: jax.Array
     pattern: PatternArrays
     solver: AbstractSolver
     solver_state: object
     n_nodes: int = eqx.field(static=True)
     n_elec: int = eqx.field(static=True)
     nnz: int = eqx.field(static=True)
-    tissue_bounds: tuple[int, ...] = eqx.field(static=True)
     electrode_names: tuple[str, ...] = eqx.field(static=True)
 
     @property
@@ -142,28 +146,26 @@ def build_forward_model(mesh: TetMesh, electrodes, *, solver: AbstractSolver | N
             f"{int((~used).sum())} mesh nodes belong to no tet, so the FEM matrix would be "
             "singular; remove unreferenced nodes from the mesh.")
 
-    # Pattern: tet entries (10 per tet), then CEM entries (cem_entries order).
+    # Pattern: tet entries (10 per tet) and CEM entries (cem_entries order).
     tets = mesh.tets
     ti, tj = tets[:, TET_PAIRS[:, 0]].ravel(), tets[:, TET_PAIRS[:, 1]].ravel()
     ci, cj = cem_entries(n_nodes, faces, fe, n_elec)
-    i, j = np.concatenate([ti, ci]), np.concatenate([tj, cj])
     n = n_nodes + n_elec - 1
-    pattern = Pattern(n, i, j)
-    order, targets = scatter_plan(pattern.locate(i, j), pattern.nnz)
+    pattern = Pattern(n, np.concatenate([ti, ci]), np.concatenate([tj, cj]))
+    order, targets = scatter_plan(pattern.locate(ti, tj), pattern.nnz, complete=False)
     free = np.flatnonzero(fe != reference_electrode(n_elec))
-    by_tissue = np.argsort(mesh.labels, kind="stable")
-    bounds = tuple(int(b) for b in np.searchsorted(mesh.labels[by_tissue],
-                                                   [int(t) for t in TISSUES] + [len(TISSUES) + 1]))
     i32 = lambda a: jnp.asarray(a, dtype=jnp.int32)  # noqa: E731  (indices < 2^31)
     model = ForwardModel(
         nodes=jnp.asarray(mesh.nodes), tets=i32(tets), labels=i32(mesh.labels),
         faces=i32(faces), face_electrode=i32(fe), free_faces=i32(free),
         contact_impedance=jnp.asarray(z), order=i32(order), targets=i32(targets),
-        tet_by_tissue=i32(by_tissue), pattern=PatternArrays.from_pattern(pattern),
-        solver=solver, solver_state=None, n_nodes=n_nodes, n_elec=n_elec, nnz=pattern.nnz,
-        tissue_bounds=bounds,
+        cem_targets=i32(pattern.locate(ci, cj)), tissue_values=None,
+        pattern=PatternArrays.from_pattern(pattern), solver=solver, solver_state=None,
+        n_nodes=n_nodes, n_elec=n_elec, nnz=pattern.nnz,
         electrode_names=tuple(getattr(electrodes, "names", ()) or
                               (f"E{k + 1}" for k in range(n_elec))))
+    model = eqx.tree_at(lambda m: m.tissue_values, model, _tissue_values_jit(model, None),
+                        is_leaf=lambda x: x is None)
     values0 = np.asarray(assemble(model, default_sigma() if sigma is None else sigma))
     state = solver.init(pattern, values0)
     return eqx.tree_at(lambda m: m.solver_state, model, state, is_leaf=lambda x: x is None)
@@ -255,23 +257,44 @@ def _geometry(model, nodes):
     return to_metres(model.nodes if nodes is None else nodes)
 
 
+def _tissue_values(model: ForwardModel, nodes):
+    """(4, nnz) stored values of each tissue's unit-conductivity stiffness (S per S/m)."""
+    x = _geometry(model, nodes)
+    k1 = tet_stiffness(x, model.tets)
+    if nodes is not None:
+        # Inverted or flat tets (possible when `nodes` moves) make the matrix indefinite.
+        k1 = eqx.error_if(k1, jnp.any(~(tet_volumes(x, model.tets) > 0)),
+                          "`nodes` inverts or flattens some tets (volume <= 0); the FEM needs "
+                          "every tet positively oriented.")
+    onehot = model.labels[:, None] == jnp.asarray([int(t) for t in TISSUES])
+    contrib = (k1[:, :, None] * onehot[:, None, :].astype(k1.dtype)).reshape(-1, len(TISSUES))
+    return scatter_add(contrib, model.order, model.targets, model.nnz).T
+
+
+_tissue_values_jit = eqx.filter_jit(_tissue_values)
+
+
 def _assemble(model: ForwardModel, sigma, nodes, z):
     """Stored values of the grounded CEM matrix from validated inputs (S)."""
     sigma = eqx.error_if(sigma, jnp.any(~(sigma > 0)), "`sigma` must be > 0 S/m (got <= 0 or NaN).")
-    if sigma.shape[0] == len(TISSUES) and model.n_tets != len(TISSUES):
-        sigma = sigma[model.labels - 1]
     z = model.contact_impedance if z is None else z
     z = eqx.error_if(z, jnp.any(~(z > 0)),
                      "`contact_impedance` must be > 0 Ohm m^2 (got <= 0 or NaN).")
     x = _geometry(model, nodes)
-    k1 = tet_stiffness(x, model.tets)
-    # Inverted or flat tets (possible when `nodes` moves) make the matrix indefinite.
-    k1 = eqx.error_if(k1, jnp.any(~(tet_volumes(x, model.tets) > 0)),
-                      "`nodes` inverts or flattens some tets (volume <= 0); the FEM needs every "
-                      "tet positively oriented.")
+    if sigma.shape[0] == len(TISSUES) and model.n_tets != len(TISSUES):
+        # per-tissue conductivity: a linear combination of the tissues' stiffness values
+        tv = model.tissue_values if nodes is None else _tissue_values(model, nodes)
+        values = sigma @ tv
+    else:
+        k1 = tet_stiffness(x, model.tets)
+        if nodes is not None:
+            k1 = eqx.error_if(k1, jnp.any(~(tet_volumes(x, model.tets) > 0)),
+                              "`nodes` inverts or flattens some tets (volume <= 0); the FEM "
+                              "needs every tet positively oriented.")
+        values = scatter_add((sigma[:, None] * k1).ravel(), model.order, model.targets,
+                             model.nnz)
     cem = cem_values(x, model.faces, model.face_electrode, model.free_faces, z)
-    contrib = jnp.concatenate([(sigma[:, None] * k1).ravel(), cem])
-    return scatter_add(contrib, model.order, model.targets, model.nnz)
+    return values.at[model.cem_targets].add(cem)
 
 
 def assemble(model: ForwardModel, sigma, *, nodes=None, contact_impedance=None):
@@ -443,92 +466,93 @@ def _row_fields(model, rows):
     return currents, combo, index[:n_rows], index[n_rows:], sign[:n_rows], sign[n_rows:]
 
 
-def _field_gradients(x, tets, fields_t):
-    """Gradients of P1 fields on each tet, (n_f, 3, n_tets) from nodal fields (n_f, n_nodes).
-
-    grad u = sum_a u_a c_a / det (see `jaxhead.fem.assembly`), written as four gathers and
-    element-wise products so that XLA fuses it into one pass with tets contiguous.
-    """
-    c, det = tet_geometry(x, tets)
-    cd = jnp.transpose(c / det[:, None, None], (1, 2, 0))  # (4, 3, n_tets)
-    g = 0.0
-    for a in range(4):
-        g = g + cd[a][None, :, :] * fields_t[:, tets[:, a]][:, None, :]
-    return g
-
-
 @eqx.filter_jit
-def _jacobian_fields(model, sigma, nodes, z, currents, combo, p, q, d_idx, d_coef, per):
-    """Solves once, returns the field gradients the bilinear forms need, and the voltages."""
+def _jacobian_solve(model, sigma, nodes, z, currents, combo, p, q, d_idx, d_coef):
+    """One assembly and solve: nodal fields of the pair patterns (n_nodes, n_pat), voltages."""
     values = _assemble(model, sigma, nodes, z)
     u, U = _solve_patterns(model, values, currents)
     Up = U @ combo  # electrode voltages of the pair patterns (unit current)
-    volts = d_coef * (Up[p, d_idx] - Up[q, d_idx])
-    x = _geometry(model, nodes)
-    vol = tet_volumes(x, model.tets)
-    if per == "tissue":
-        # Gram matrices of the solved fields' gradients over each tissue, then the pair
-        # combinations: sum_e vol_e grad u_d . grad w_m = combo_d^T Gram combo_m.
-        order = model.tet_by_tissue
-        g = _field_gradients(x, model.tets[order], u.T)  # (n_solved, 3, n_tets) by tissue
-        gv = g * vol[order][None, None, :]
-        b = model.tissue_bounds
-        grams = [jnp.einsum("skt,rkt->sr", gv[:, :, b[t]:b[t + 1]], g[:, :, b[t]:b[t + 1]])
-                 for t in range(len(TISSUES))]
-        return jnp.stack([combo.T @ G @ combo for G in grams]), volts
-    g = _field_gradients(x, model.tets, (u @ combo).T)  # (n_pat, 3, n_tets)
-    return (g * vol[None, None, :], g), volts
-
-
-def _block(a, b, d_idx, m_idx, scale, out_dtype):
-    v = a[d_idx, 0] * b[m_idx, 0] + a[d_idx, 1] * b[m_idx, 1] + a[d_idx, 2] * b[m_idx, 2]
-    return (scale[:, None] * v).astype(out_dtype)
+    return u @ combo, d_coef * (Up[p, d_idx] - Up[q, d_idx])
 
 
 @eqx.filter_jit
-def _tile(a, b, d_idx, m_idx, scale, start, out_dtype, width):
-    x = jax.lax.dynamic_slice_in_dim(a, start, width, axis=2)
-    y = jax.lax.dynamic_slice_in_dim(b, start, width, axis=2)
-    return _block(x, y, d_idx, m_idx, scale, out_dtype)
+def _tissue_grams(model, nodes, fields):
+    """G[t] = W^T K_t W (4, n_pat, n_pat): K_t the unit-conductivity stiffness of tissue t.
 
-
-def _bilinear_rows(a, b, d_idx, m_idx, scale, out_dtype, tile, out=None):
-    """J[r, e] = scale[r] sum_k a[d_idx[r], k, e] b[m_idx[r], k, e], tile by tile over e.
-
-    The fields (n_pat, 3, n_tets) are far larger than the cache and every row reads two of
-    them; computing all rows for one tile of tets at a time reads each field from memory once
-    (measured ~5x faster than row by row here) and bounds temporaries to (n_rows, tile).
-    Concrete inputs: a host loop writes the tiles into a NumPy array (`out` if given; NumPy
-    asks for transparent huge pages, which makes first-touching a GB-sized result several
-    times cheaper than XLA's fresh buffers). Traced inputs: a `fori_loop` in JAX.
+    The sum over tissue t's tets of int grad w_a . grad w_b dx is the sparse bilinear form of
+    K_t (`ForwardModel.tissue_values`), so the per-tissue sensitivity needs no per-tet
+    gradients.
     """
-    n_rows, n_tets = d_idx.shape[0], a.shape[2]
+    tv = model.tissue_values if nodes is None else _tissue_values(model, nodes)
+    padded = jnp.concatenate([fields, jnp.zeros((model.n_elec - 1, fields.shape[1]))], axis=0)
+    kw = matvecs(model.pattern, tv, padded)[:, :model.n_nodes]  # (4, n_nodes, n_pat)
+    return jnp.einsum("np,tnq->tpq", fields, kw)
+
+
+def _grads(x, tets, fields, out_dtype):
+    """Field gradients on tets, (n_pat, 3, n) with tets contiguous, and volumes (n,).
+
+    grad u = sum_a u_a c_a / det and vol = det / 6 (`jaxhead.fem.assembly`).
+    """
+    c, det = tet_geometry(x, tets)
+    cd = c / det[:, None, None]
+    g = sum(cd[:, a, :, None] * fields[tets[:, a]][:, None, :] for a in range(4))  # (n, 3, P)
+    return jnp.transpose(g, (2, 1, 0)).astype(out_dtype), (det / 6.0).astype(out_dtype)
+
+
+def _rows(g, w, d_idx, m_idx, scale, out_dtype):
+    """J[r, e] = scale_r vol_e grad u_{d_r} . grad u_{m_r} from gradients (n_pat, 3, n)."""
+    v = g[d_idx, 0] * g[m_idx, 0] + g[d_idx, 1] * g[m_idx, 1] + g[d_idx, 2] * g[m_idx, 2]
+    return scale.astype(out_dtype)[:, None] * (w[None, :] * v)
+
+
+@eqx.filter_jit
+def _tile_grads(model, nodes, fields, start, out_dtype, width):
+    tets = jax.lax.dynamic_slice_in_dim(model.tets, start, width, axis=0)
+    return _grads(_geometry(model, nodes), tets, fields, out_dtype)
+
+
+_rows_jit = eqx.filter_jit(_rows)
+
+
+def _tet_rows(model, nodes, fields, d_idx, m_idx, scale, out_dtype, tile, out=None):
+    """J (n_rows, n_tets), tile by tile over the tets.
+
+    Concrete inputs: a host loop over tiles of `tile` tets; each tile's gradients are formed
+    (one call) and then all rows for the tile (a second call: in one XLA fusion the gradient
+    computation would be repeated for every row), written into a NumPy array (`out` if
+    given; NumPy asks the kernel for transparent huge pages, which makes first-touching a
+    GB-sized result several times cheaper than a fresh XLA buffer on this machine).
+    Traced inputs: the gradients of all tets, then a `fori_loop` over tiles in JAX.
+    """
+    n_rows, n_tets = d_idx.shape[0], model.n_tets
     tile = min(tile, n_tets)
     n_full = n_tets // tile
-    if not any(_is_tracer(t) for t in (a, b, scale)):
+    rest = n_tets - n_full * tile
+    d_idx, m_idx = jnp.asarray(d_idx), jnp.asarray(m_idx)
+    if not any(_is_tracer(t) for t in (fields, scale, nodes)):
         if out is None:
             out = np.empty((n_rows, n_tets), dtype=out_dtype)
-        d_idx, m_idx = jnp.asarray(d_idx), jnp.asarray(m_idx)
-        for i in range(n_full):
-            out[:, i * tile:(i + 1) * tile] = np.asarray(
-                _tile(a, b, d_idx, m_idx, scale, i * tile, out_dtype, tile))
-        if n_full * tile < n_tets:
-            w = n_tets - n_full * tile
-            out[:, n_full * tile:] = np.asarray(
-                _tile(a, b, d_idx, m_idx, scale, n_full * tile, out_dtype, w))
+        for start, width in [(i * tile, tile) for i in range(n_full)] + (
+                [(n_full * tile, rest)] if rest else []):
+            # the start is an array (traced): one compilation for all full tiles
+            g, w = _tile_grads(model, nodes, fields, jnp.int32(start), out_dtype, width)
+            out[:, start:start + width] = np.asarray(_rows_jit(g, w, d_idx, m_idx, scale,
+                                                               out_dtype))
         return out
+    g, w = _grads(_geometry(model, nodes), model.tets, fields, out_dtype)  # loop inputs
     J = jnp.zeros((n_rows, n_tets), out_dtype)
 
     def body(i, J):
-        x = jax.lax.dynamic_slice_in_dim(a, i * tile, tile, axis=2)
-        y = jax.lax.dynamic_slice_in_dim(b, i * tile, tile, axis=2)
+        gi = jax.lax.dynamic_slice_in_dim(g, i * tile, tile, axis=2)
+        wi = jax.lax.dynamic_slice_in_dim(w, i * tile, tile, axis=0)
         return jax.lax.dynamic_update_slice_in_dim(
-            J, _block(x, y, d_idx, m_idx, scale, out_dtype), i * tile, axis=1)
+            J, _rows(gi, wi, d_idx, m_idx, scale, out_dtype), i * tile, axis=1)
 
     J = jax.lax.fori_loop(0, n_full, body, J)
-    if n_full * tile < n_tets:
-        J = J.at[:, n_full * tile:].set(_block(a[:, :, n_full * tile:], b[:, :, n_full * tile:],
-                                               d_idx, m_idx, scale, out_dtype))
+    if rest:
+        J = J.at[:, n_full * tile:].set(_rows(g[:, :, n_full * tile:], w[n_full * tile:], d_idx,
+                                              m_idx, scale, out_dtype))
     return J
 
 
@@ -550,11 +574,12 @@ def jacobian(model: ForwardModel, sigma, protocol, *, per: str = "tet", nodes=No
         protocol: Protocol (its rows must be concrete: close over it under jit).
         per: "tet" -> (n_rows, n_tets); "tissue" -> (n_rows, 4) (sums over each tissue's tets).
         nodes, contact_impedance: as in `simulate`.
-        dtype: storage dtype of the result (jnp.float32 halves the memory); the solves and
-            field gradients stay float64.
+        dtype: storage dtype of the result (jnp.float32 halves the memory); the solves stay
+            float64 (the per-tet gradient products are then formed in float32, an error of
+            ~1e-7 relative, the same as the storage's rounding).
         tile_tets: rows are computed for this many tets at a time: temporaries are
-            (n_rows, tile_tets), on top of the result and the pair fields' gradients
-            (2, n_pat, 3, n_tets) float64.
+            (n_rows, tile_tets) and (n_pat, 3, tile_tets), on top of the result and the
+            nodal fields (n_nodes, n_pat) float64.
         out: optional preallocated (n_rows, n_tets) NumPy array of `dtype` to write into
             (reused across calls, it saves the allocation of a GB-sized result).
         return_volts: also return the (n_rows,) voltages (from the same solves).
@@ -578,13 +603,15 @@ def jacobian(model: ForwardModel, sigma, protocol, *, per: str = "tet", nodes=No
             f"`out` must be a NumPy array of shape ({rows.shape[0]}, {model.n_tets}) and dtype "
             f"{out_dtype}, got {getattr(out, 'shape', None)} {getattr(out, 'dtype', None)}.")
     currents, combo, d_idx, m_idx, d_sign, m_sign = _row_fields(model, rows)
-    fields, volts = _jacobian_fields(
-        model, _check_sigma(model, sigma), _check_nodes(model, nodes),
-        _check_z(model, contact_impedance), currents, combo, rows[:, 2], rows[:, 3], d_idx,
-        current * d_sign, per)
+    sigma = _check_sigma(model, sigma)
+    nodes = _check_nodes(model, nodes)
+    fields, volts = _jacobian_solve(
+        model, sigma, nodes, _check_z(model, contact_impedance), currents, combo, rows[:, 2],
+        rows[:, 3], d_idx, current * d_sign)
     scale = jnp.asarray(-current * d_sign * m_sign)
     if per == "tissue":
-        J = (scale[:, None] * fields[:, d_idx, m_idx].T).astype(out_dtype)
+        G = _tissue_grams(model, nodes, fields)
+        J = (scale[:, None] * G[:, d_idx, m_idx].T).astype(out_dtype)
     else:
-        J = _bilinear_rows(*fields, d_idx, m_idx, scale, out_dtype, int(tile_tets), out)
+        J = _tet_rows(model, nodes, fields, d_idx, m_idx, scale, out_dtype, int(tile_tets), out)
     return (J, volts) if return_volts else J

@@ -49,36 +49,91 @@ logger = logging.getLogger(__name__)
 # Pattern arrays for JAX (the matvec that custom_linear_solve differentiates)
 
 
+#: Rows longer than this keep their first `ell_width` entries in the ELL block and the rest in
+#: a small COO overflow (the electrode unknowns' rows: one entry per node under the electrode).
+LONG_ROW = 64
+
+
 class PatternArrays(eqx.Module):
-    """The full symmetric COO pattern as arrays, for the JAX mat-vec.
+    """The full symmetric pattern as arrays, for the JAX mat-vec (ELL + COO overflow).
+
+    The mat-vec avoids a scatter over all non-zeros (slow in XLA on CPU): every row's first
+    `ell_width` entries are gathered and reduced in an (n, ell_width) block (ELLPACK; padding
+    points at a zero value), and the entries beyond that (only rows longer than `LONG_ROW`)
+    are summed by a small segment-sum.
 
     Attributes:
-        rows, cols: (nnz_full,) sorted by row.
-        to_upper: (nnz_full,) stored (upper-triangle) entry of each full entry.
+        ell_cols, ell_vals: (n, ell_width) column and stored-value index of each row's entries
+            (padding: column 0, value index nnz, which reads 0).
+        ovf_rows, ovf_cols, ovf_vals: (n_ovf,) the overflow entries.
         diag: (n,) stored entry of each diagonal element.
-        n: matrix size.
+        rows, cols, to_upper: (nnz_full,) the full COO pattern (sorted by row) for set-ups.
+        n, nnz: matrix size and number of stored entries.
     """
 
+    ell_cols: np.ndarray
+    ell_vals: np.ndarray
+    ovf_rows: np.ndarray
+    ovf_cols: np.ndarray
+    ovf_vals: np.ndarray
+    diag: np.ndarray
     rows: np.ndarray
     cols: np.ndarray
     to_upper: np.ndarray
-    diag: np.ndarray
     n: int = eqx.field(static=True)
+    nnz: int = eqx.field(static=True)
 
     @classmethod
     def from_pattern(cls, pattern: Pattern) -> "PatternArrays":
         def i32(a):
             return jnp.asarray(a, dtype=jnp.int32)
 
-        return cls(rows=i32(pattern.full_rows), cols=i32(pattern.full_cols),
-                   to_upper=i32(pattern.full_to_upper), diag=i32(pattern.diag), n=pattern.n)
+        rows, cols, up = pattern.full_rows, pattern.full_cols, pattern.full_to_upper
+        n = pattern.n
+        starts = np.searchsorted(rows, np.arange(n + 1))
+        length = np.diff(starts)
+        # ELL width: the longest row among all but the 0.1 % longest (and <= LONG_ROW), so
+        # the few long rows (electrodes) overflow instead of widening every row
+        width = int(min(np.percentile(length, 99.9, method="lower"), LONG_ROW))
+        pos = np.arange(rows.size) - starts[rows]  # position of each entry within its row
+        in_ell = pos < width
+        ell_cols = np.zeros((n, width), np.int64)
+        ell_vals = np.full((n, width), pattern.nnz, np.int64)
+        ell_cols[rows[in_ell], pos[in_ell]] = cols[in_ell]
+        ell_vals[rows[in_ell], pos[in_ell]] = up[in_ell]
+        ovf = ~in_ell
+        return cls(ell_cols=i32(ell_cols), ell_vals=i32(ell_vals), ovf_rows=i32(rows[ovf]),
+                   ovf_cols=i32(cols[ovf]), ovf_vals=i32(up[ovf]), diag=i32(pattern.diag),
+                   rows=i32(rows), cols=i32(cols), to_upper=i32(up), n=n, nnz=pattern.nnz)
 
 
 def matvec(p: PatternArrays, values, x):
     """A x for the symmetric matrix with stored values `values` (nnz,); x is (n,) or (n, k)."""
-    v = values[p.to_upper]
-    prod = v.reshape(v.shape + (1,) * (x.ndim - 1)) * x[p.cols]
-    return jax.ops.segment_sum(prod, p.rows, num_segments=p.n, indices_are_sorted=True)
+    v = jnp.concatenate([values, jnp.zeros((1,), values.dtype)])
+    vec = x.ndim == 1
+    x2 = x[:, None] if vec else x
+    V = v[p.ell_vals]  # one gather, so the transpose (values' cotangent) is one scatter
+    y = jnp.zeros((p.n, x2.shape[1]), jnp.result_type(values, x))
+    for k in range(p.ell_cols.shape[1]):  # unrolled: one fused gather-multiply-add
+        y = y + V[:, k, None] * x2[p.ell_cols[:, k]]
+    y = y + jax.ops.segment_sum(v[p.ovf_vals][:, None] * x2[p.ovf_cols], p.ovf_rows,
+                                num_segments=p.n, indices_are_sorted=True)
+    return y[:, 0] if vec else y
+
+
+def matvecs(p: PatternArrays, values, x):
+    """A_t x for several matrices on one pattern: values (m, nnz) -> (m, n[, k]).
+
+    Several mat-vecs of the same x in one XLA computation share (CSE, or hoist out of a loop)
+    the gathers of x, which XLA then materialises: ~30x slower on CPU than one mat-vec. A
+    zero that XLA cannot prove zero (min(loop index, 0)) in the column indices keeps each
+    loop iteration's gathers its own.
+    """
+    def one(t, v):
+        q = eqx.tree_at(lambda q: q.ell_cols, p, p.ell_cols + jnp.minimum(t, 0))
+        return matvec(q, v, x)
+
+    return jax.lax.map(lambda tv: one(*tv), (jnp.arange(values.shape[0]), values))
 
 
 # ----------------------------------------------------------------------------------------------
