@@ -16,11 +16,11 @@ from .register import (
     resample,
     warp_volume,
 )
-from .segment import Segmentation, SegmentConfig, segment
+from .segment import Segmentation, SegmentConfig, classify, register_atlas, segment
 
 __all__ = [
     "AffineTransform", "Atlas", "BSplineTransform", "EMOptions", "EMResult", "MixtureParams",
     "RegisterConfig", "SegmentConfig", "Segmentation", "affine_register", "bspline_register",
-    "build_atlas", "cache_dir", "default_atlas", "fit_mixture", "infer_posteriors", "mean_field",
-    "neighbour_sum", "potts_energy", "register", "resample", "segment", "warp_volume",
+    "build_atlas", "cache_dir", "classify", "default_atlas", "fit_mixture", "infer_posteriors", "mean_field",
+    "neighbour_sum", "potts_energy", "register", "register_atlas", "resample", "segment", "warp_volume",
 ]

@@ -16,10 +16,12 @@ degree <= d without the constant (the means absorb it). Iterations:
 - M-step: weighted means, variances and within-class weights; then the bias coefficients by weighted
   least squares with weights W_i = sum_j r_ij / v_j over the head's Gaussians (Van Leemput 1999,
   eq. 6; Wells 1996).
-- Prior relaxation (Cardoso et al. 2011, NeuroImage 56:1386; NiftySeg seg_EM -rf): once the strict-
-  prior EM has settled, the prior becomes (1 - a) * atlas + a * G_sigma * posterior, renormalised, so
-  anatomy that differs from the atlas can win where the image evidence is strong.
-- Stop when the relative change of the mean log-likelihood is below tol (inside lax.while_loop).
+- Prior relaxation (Cardoso et al. 2011, NeuroImage 56:1386; NiftySeg seg_EM -rf): once the EM with
+  the atlas priors has converged, the prior is replaced, once, by (1 - a) * atlas + a * G_sigma *
+  posterior (renormalised), so anatomy that differs from the atlas can win where the image evidence
+  is strong, and the EM runs on to convergence again (NiftySeg relaxes once, after convergence; a
+  relaxation at every iteration feeds the posterior back into its own prior and drifts).
+- Stop when the change of the mean log-likelihood per voxel is below tol (inside lax.while_loop).
 
 The E-step works in the probability domain after subtracting each voxel's largest component
 log-density (so nothing underflows, even for CT air vs bone), which lets XLA fuse it into one pass.
@@ -54,11 +56,12 @@ class EMOptions:
         component_class: class index (0..K-1) of each Gaussian, sorted, e.g. (0, 0, 1, 1, 2, 3, 3, 4, 4).
         n_classes: K.
         beta: Potts MRF strength (0 = off).
-        max_iter, min_iter: EM iteration bounds.
-        tol: stop when |LL_t - LL_{t-1}| < tol * |LL_t| (LL = mean log-likelihood per voxel).
+        max_iter, min_iter: EM iteration bounds (max_iter counts both phases, before and after the
+            prior relaxation).
+        tol: stop when |LL_t - LL_{t-1}| < tol, LL = mean log-likelihood per voxel of the standardised
+            data (nats; an absolute test, since LL per voxel can be near 0, where a relative one fails).
         relax: prior relaxation weight a in [0, 1) (0 = strict atlas priors).
         relax_sigma_vox: Gaussian smoothing of the posterior in the relaxed prior (voxels).
-        relax_after: EM iterations with strict priors before relaxing.
         bias_degree: total degree of the Legendre bias basis (0 = no bias field).
         bias_classes: classes whose voxels drive the bias fit (None: all but class 0).
         bias_ridge: Tikhonov weight on the bias coefficients (relative to the total weight).
@@ -72,10 +75,9 @@ class EMOptions:
     beta: float = 0.0
     max_iter: int = 60
     min_iter: int = 3
-    tol: float = 1e-5
+    tol: float = 1e-4
     relax: float = 0.0
     relax_sigma_vox: float = 1.0
-    relax_after: int = 5
     bias_degree: int = 0
     bias_classes: tuple[int, ...] | None = None
     bias_ridge: float = 1e-6
@@ -335,19 +337,31 @@ def _m_step(y, r, mu_old, opts: EMOptions, var_floor):
     return mu, var, jnp.stack(w)
 
 
-def _init_params(ys, atlas, opts: EMOptions):
-    """Prior-weighted class moments; a class with J Gaussians spreads them over its mean +- 1 sd."""
+def _init_params(ys, atlas, opts: EMOptions, n_hist: int = 512):
+    """Start values: each class's Gaussians at the prior-weighted quantiles (j + 1/2) / J of the data,
+    variance = class variance / J^2, equal weights (quantiles from a 512-bin weighted histogram)."""
+    dtype = ys.dtype
+    lo, hi = jnp.min(ys), jnp.max(ys)
+    width = (hi - lo) / n_hist + jnp.finfo(dtype).tiny
+    bins = jnp.clip(((ys - lo) / width).astype(jnp.int32), 0, n_hist - 1).ravel()
+    centres = lo + (jnp.arange(n_hist, dtype=dtype) + 0.5) * width
     mus, vars_, ws = [], [], []
     for k, g in enumerate(opts.groups):
-        n = _vsum(atlas[k]) + jnp.finfo(ys.dtype).tiny
+        n = _vsum(atlas[k]) + jnp.finfo(dtype).tiny
         m = _vsum(atlas[k] * ys) / n
         v = _vsum(atlas[k] * (ys - m) ** 2) / n
-        offs = np.linspace(-1.0, 1.0, len(g)) if len(g) > 1 else np.zeros(1)
-        for o in offs:
-            mus.append(m + float(o) * jnp.sqrt(v))
-            vars_.append(v / len(g))
+        if len(g) == 1:
+            mus.append(m)
+        else:
+            hist = jax.ops.segment_sum(atlas[k].ravel(), bins, num_segments=n_hist)
+            cdf = jnp.cumsum(hist) / jnp.sum(hist)
+            for j in range(len(g)):
+                q = (j + 0.5) / len(g)
+                mus.append(centres[jnp.clip(jnp.searchsorted(cdf, q), 0, n_hist - 1)])
+        for _ in g:
+            vars_.append(jnp.maximum(v / len(g) ** 2, opts.var_floor))
             ws.append(1.0 / len(g))
-    return jnp.stack(mus), jnp.stack(vars_), jnp.asarray(ws, dtype=ys.dtype)
+    return jnp.stack(mus), jnp.stack(vars_), jnp.asarray(ws, dtype=dtype)
 
 
 def _normalise_prior(priors, floor):
@@ -395,47 +409,44 @@ def fit_mixture(y, priors, opts: EMOptions, init: MixtureParams | None = None, c
         w = jnp.asarray(init.weights, dtype)
         coef = jnp.asarray(init.bias, dtype).reshape(n_bias) / s
 
-    def prior_at(it, post_prev):
-        p = atlas
-        if opts.relax > 0:
-            p = lax.cond(
-                it >= opts.relax_after,
-                lambda q: _relaxed_prior(atlas, q, opts.relax, opts.relax_sigma_vox),
-                lambda q: list(atlas),
-                post_prev,
-            )
-        return _mrf_prior(p, post_prev, opts.beta)
-
     def bias_of(coef):
         return bias_field(coef, coords, degree) if degree > 0 else jnp.zeros_like(ys)
 
+    final_phase = 1 if opts.relax > 0 else 0
+
     def body(state):
-        it, mu, var, w, coef, post_prev, ll_cur, _ = state
+        it, phase, mu, var, w, coef, post_prev, prior, ll_cur, _ = state
         yc = ys - bias_of(coef)
-        post, pj, lk, ll = _e_step(yc, prior_at(it, post_prev), mu, var, w, opts)
+        post, pj, lk, ll = _e_step(yc, _mrf_prior(prior, post_prev, opts.beta), mu, var, w, opts)
         r = _responsibilities(post, pj, lk, opts)
         mu, var, w = _m_step(yc, r, mu, opts, floor)
         if degree > 0:
             wv = functools.reduce(jnp.add, [r[j] / var[j] for j in range(len(r)) if bias_comp[j]])
             rv = functools.reduce(jnp.add, [r[j] * (mu[j] / var[j]) for j in range(len(r)) if bias_comp[j]])
             coef = _fit_bias(wv, wv * ys - rv, coords, degree, opts.bias_ridge)
+        ll_prev = ll_cur
+        if final_phase:
+            small = jnp.abs(ll - ll_cur) < opts.tol
+            switch = (phase == 0) & small & (it + 1 >= opts.min_iter)
+            prior = lax.cond(
+                switch, lambda: _relaxed_prior(atlas, post, opts.relax, opts.relax_sigma_vox), lambda: list(prior)
+            )
+            phase = phase + switch.astype(phase.dtype)
+            ll_prev = jnp.where(switch, -jnp.inf, ll_cur)  # the relaxed problem starts afresh
         if _DEBUG:
-            jax.debug.print("it {} ll {} mu {}", it, ll, mu * s + c)
-        return it + 1, mu, var, w, coef, post, ll, ll_cur
-
-    n_min = max(opts.min_iter, opts.relax_after + 2 if opts.relax > 0 else 0)
+            jax.debug.print("it {} phase {} ll {} mu {}", it, phase, ll, mu * s + c)
+        return it + 1, phase, mu, var, w, coef, post, prior, ll, ll_prev
 
     def cond(state):
-        it, _, _, _, _, _, ll, ll_prev = state
-        small = jnp.abs(ll - ll_prev) < opts.tol * jnp.abs(ll)
-        return (it < opts.max_iter) & ((it < n_min) | ~small)
+        it, phase, _, _, _, _, _, _, ll, ll_prev = state
+        small = jnp.abs(ll - ll_prev) < opts.tol
+        return (it < opts.max_iter) & ((it < opts.min_iter) | ~small | (phase < final_phase))
 
     inf = jnp.asarray(jnp.inf, dtype)
-    state = (jnp.asarray(0), mu, var, w, coef, list(atlas), -inf, inf)
-    it, mu, var, w, coef, post, ll, ll_prev = lax.while_loop(cond, body, state)
-    converged = jnp.abs(ll - ll_prev) < opts.tol * jnp.abs(ll)
+    state = (jnp.asarray(0), jnp.asarray(0), mu, var, w, coef, list(atlas), list(atlas), -inf, inf)
+    it, phase, mu, var, w, coef, post, prior, ll, ll_prev = lax.while_loop(cond, body, state)
+    converged = (jnp.abs(ll - ll_prev) < opts.tol) & (phase == final_phase)
     b = bias_of(coef)
-    post, _, _, _ = _e_step(ys - b, prior_at(it, post), mu, var, w, opts)
     params = MixtureParams(means=mu * s + c, variances=var * s**2, weights=w, bias=coef * s)
     return EMResult(
         posteriors=jnp.stack(post), params=params, bias_field=b * s, log_likelihood=ll, n_iter=it,
@@ -454,7 +465,8 @@ def infer_posteriors(y, priors, params: MixtureParams, opts: EMOptions, n_sweeps
         priors: (K, x, y, z) atlas priors.
         params: MixtureParams (data units) from `fit_mixture`.
         opts: EMOptions (beta, relaxation, bias degree, prior floor are used).
-        n_sweeps: E-step sweeps after the first (each updates the MRF and relaxed prior).
+        n_sweeps: mean-field E-step sweeps after the first E-step, with the atlas prior and then
+            (if opts.relax) again with the relaxed prior.
         coords: per-axis bias coordinates of this grid (default: it spans [-1, 1]).
     Returns:
         (K, x, y, z) posteriors.
@@ -467,8 +479,10 @@ def infer_posteriors(y, priors, params: MixtureParams, opts: EMOptions, n_sweeps
     mu, var, w = (jnp.asarray(a, dtype) for a in (params.means, params.variances, params.weights))
     post = _e_step(yc, atlas, mu, var, w, opts)[0]
 
-    def sweep(_, q):
-        p = _relaxed_prior(atlas, q, opts.relax, opts.relax_sigma_vox) if opts.relax > 0 else atlas
-        return _e_step(yc, _mrf_prior(p, q, opts.beta), mu, var, w, opts)[0]
+    def sweeps(prior, q):
+        return lax.fori_loop(0, n_sweeps, lambda _, q: _e_step(yc, _mrf_prior(prior, q, opts.beta), mu, var, w, opts)[0], q)
 
-    return jnp.stack(lax.fori_loop(0, n_sweeps, sweep, post))
+    post = sweeps(atlas, post)
+    if opts.relax > 0:  # as in fit_mixture: relax once, then sweep again
+        post = sweeps(_relaxed_prior(atlas, post, opts.relax, opts.relax_sigma_vox), post)
+    return jnp.stack(post)

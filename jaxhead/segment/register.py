@@ -22,6 +22,7 @@ subject's voxel grid.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -574,12 +575,23 @@ def _ffd_cost(coefficients, args):
     return -sim + lam * bending_energy(coefficients, spacing)
 
 
+def _scaled_ffd_cost(coefficients, args):
+    scale, inner = args
+    return scale * _ffd_cost(coefficients, inner)
+
+
 @eqx.filter_jit
-def _solve_ffd(c0, data, kind, n_bins, lam, spacing, rtol, atol, max_steps):
+def _solve_ffd(c0, data, kind, n_bins, lam, spacing, step_mm, rtol, atol, max_steps):
+    # The similarity changes by ~1e-4 per mm of one control point, so a plain first quasi-Newton
+    # step (-gradient, identity Hessian) would move nothing and the solver would stop at once.
+    # Scale the cost so that the first step moves the steepest control point by `step_mm` (about a
+    # voxel); L-BFGS's curvature pairs take over from there. The optimum is unchanged.
+    inner = (data, kind, n_bins, lam, spacing)
+    g0 = jax.grad(_ffd_cost)(c0, inner)
+    scale = step_mm / (jnp.max(jnp.abs(g0)) + jnp.finfo(c0.dtype).tiny)
     solver = optx.LBFGS(rtol=rtol, atol=atol)
-    args = (data, kind, n_bins, lam, spacing)
-    sol = optx.minimise(_ffd_cost, solver, c0, args=args, max_steps=max_steps, throw=False)
-    return sol.value, sol.stats["num_steps"], _ffd_cost(sol.value, args)
+    sol = optx.minimise(_scaled_ffd_cost, solver, c0, args=(scale, inner), max_steps=max_steps, throw=False)
+    return sol.value, sol.stats["num_steps"], _ffd_cost(sol.value, inner)
 
 
 def bspline_register(
@@ -635,7 +647,7 @@ def bspline_register(
         )
         coeffs, steps, cost = _solve_ffd(
             coeffs, data, cfg.similarity, cfg.n_bins, float(cfg.bending_energy), tuple(float(s) for s in spacing),
-            cfg.rtol, cfg.atol, cfg.bspline_max_steps,
+            float(voxel_sizes(fa).mean()), cfg.rtol, cfg.atol, cfg.bspline_max_steps,
         )
         log.info("B-spline level %.1f mm: %d steps, cost %.5f, %.1f s", res, int(steps), float(cost),
                  time.perf_counter() - t0)
@@ -664,6 +676,35 @@ def register(fixed: Volume, moving: Volume, cfg: RegisterConfig = RegisterConfig
 # ----------------------------------------------------------------------------------------------
 
 
+def _transform_parts(transform: Transform, target_shape, target_affine, dtype):
+    """Host preparation: (matrix, coefficients or None, per-axis bases or None) as arrays."""
+    if isinstance(transform, BSplineTransform):
+        bases = tuple(_axis_bases(np.asarray(transform.grid_affine), transform.coefficients.shape[1:],
+                                  tuple(target_shape), target_affine, dtype))
+        return jnp.asarray(transform.affine, dtype), jnp.asarray(transform.coefficients, dtype), bases
+    return jnp.asarray(transform.matrix, dtype), None, None
+
+
+def _grid_to_moving(shape, target_affine, matrix, coefficients, bases, moving_affine):
+    p = _grid_points(shape, target_affine, matrix.dtype)
+    if coefficients is not None:
+        p = p + jnp.moveaxis(_displacement(coefficients, bases), 0, -1)
+    q = p @ matrix[:3, :3].T + matrix[:3, 3]
+    return _world_to_index(q, moving_affine)
+
+
+@functools.partial(jax.jit, static_argnames=("shape",))
+def _coordinates_jit(shape, target_affine, matrix, coefficients, bases, moving_affine):
+    return _grid_to_moving(shape, target_affine, matrix, coefficients, bases, moving_affine)
+
+
+@functools.partial(jax.jit, static_argnames=("shape", "use_cval"))
+def _resample_jit(data, shape, target_affine, matrix, coefficients, bases, moving_affine, cval, use_cval):
+    idx = _grid_to_moving(shape, target_affine, matrix, coefficients, bases, moving_affine)
+    sample = (lambda d: _sample(d, idx, cval)) if use_cval else (lambda d: _sample(d, idx))
+    return sample(data) if data.ndim == 3 else jax.vmap(sample)(data)
+
+
 def moving_coordinates(transform: Transform, target_shape, target_affine, moving_affine, dtype=None):
     """Moving-image voxel indices (x, y, z, 3) of every target voxel under `transform`.
 
@@ -676,17 +717,9 @@ def moving_coordinates(transform: Transform, target_shape, target_affine, moving
         (x, y, z, 3) continuous voxel indices into the moving image.
     """
     dtype = dtype or jnp.result_type(float)
-    p = _grid_points(tuple(target_shape), target_affine, dtype)
-    if isinstance(transform, BSplineTransform):
-        bases = _axis_bases(np.asarray(transform.grid_affine), transform.coefficients.shape[1:],
-                            tuple(target_shape), target_affine, dtype)
-        u = _displacement(jnp.asarray(transform.coefficients, dtype=dtype), bases)
-        p = p + jnp.moveaxis(u, 0, -1)
-        m = jnp.asarray(transform.affine, dtype=dtype)
-    else:
-        m = jnp.asarray(transform.matrix, dtype=dtype)
-    q = p @ m[:3, :3].T + m[:3, 3]
-    return _world_to_index(q, jnp.asarray(moving_affine, dtype=dtype))
+    matrix, coef, bases = _transform_parts(transform, target_shape, target_affine, dtype)
+    return _coordinates_jit(tuple(int(n) for n in target_shape), jnp.asarray(target_affine, dtype), matrix, coef,
+                            bases, jnp.asarray(moving_affine, dtype))
 
 
 def resample(
@@ -702,15 +735,19 @@ def resample(
         target_shape: (X, Y, Z) output grid.
         target_affine: (4, 4) output voxel -> world mm.
         cval: value outside the moving image (None: nearest edge value).
+        dtype: computation and output dtype (default: float64 if x64 is enabled, else float32).
     Returns:
         (X, Y, Z) or (c, X, Y, Z) array.
     """
     dtype = dtype or jnp.result_type(float)
-    idx = moving_coordinates(transform, target_shape, target_affine, data_affine, dtype)
     data = jnp.asarray(data, dtype=dtype)
-    if data.ndim == 3:
-        return _sample(data, idx, cval)
-    return jnp.stack([_sample(d, idx, None if cval is None else cval) for d in data])
+    if data.ndim not in (3, 4):
+        raise ValueError(f"`data` must be (x, y, z) or (c, x, y, z), got shape {data.shape}.")
+    matrix, coef, bases = _transform_parts(transform, target_shape, target_affine, dtype)
+    return _resample_jit(
+        data, tuple(int(n) for n in target_shape), jnp.asarray(target_affine, dtype), matrix, coef, bases,
+        jnp.asarray(data_affine, dtype), jnp.asarray(0.0 if cval is None else cval, dtype), cval is not None,
+    )
 
 
 def warp_volume(moving: Volume, transform: Transform, fixed: Volume, *, cval: float | None = None) -> Volume:

@@ -40,12 +40,15 @@ from .register import RegisterConfig, Transform, register, resample
 
 log = logging.getLogger(__name__)
 
-#: Gaussians per class by default (BACKGROUND, BRAIN, CSF, SKULL, SCALP), from the tissues' make-up:
-#: MRI: air (Rician noise floor, skewed in log) 2; brain grey + white 2; CSF 1; skull compact tables
-#: (dark) + diploe (fatty marrow, bright) 2; scalp skin/muscle + fat 2.
-#: CT: air 1; brain grey/white (HU 30-40, one blurred peak) 1; CSF 1; skull cortical + diploe 2;
-#: scalp fat (-90 HU) + skin/muscle (+40 HU) 2.
-DEFAULT_GAUSSIANS = {"mri": (2, 2, 1, 2, 2), "ct": (1, 1, 1, 2, 2)}
+#: Gaussians per class by default (BACKGROUND, BRAIN, CSF, SKULL, SCALP), from the tissues' make-up
+#: plus one for the partial-volume tail of a thin layer next to a very different one (CSF is 1-5 mm
+#: between brain and bone; without its own Gaussian that tail drags the CSF Gaussian away from CSF):
+#: MRI: air (Rician noise floor, skewed in log) 2; brain grey + white 2; CSF pure + partial volume 2;
+#: skull compact tables (dark) + diploe (fatty marrow, bright) + partial volume 3; scalp skin/muscle +
+#: fat + partial volume 3.
+#: CT: air 1; brain grey/white (HU 30-40, one blurred peak) 1; CSF pure + partial volume with bone 2;
+#: skull cortical + diploe 2; scalp fat (-90 HU) + skin/muscle (+40 HU) 2.
+DEFAULT_GAUSSIANS = {"mri": (2, 2, 2, 3, 3), "ct": (1, 1, 2, 2, 2)}
 #: Bias-field polynomial degree by default (MRI: Van Leemput et al. 1999 used 4th order; CT: none).
 DEFAULT_BIAS_DEGREE = {"mri": 4, "ct": 0}
 
@@ -83,9 +86,10 @@ class SegmentConfig:
         relax_sigma_mm: Gaussian smoothing of the posterior in the relaxed prior, mm.
         bias_degree: MRI bias field polynomial degree (None: modality default, 4 for MRI, 0 for CT).
         max_iter: EM iterations at most.
-        tol: EM stops when the relative change of the mean log-likelihood is below this.
+        tol: EM stops when the mean log-likelihood per voxel (standardised intensities) changes by
+            less than this (nats).
         em_sample_mm: the EM estimates its parameters on every k-th voxel, k = round(this / voxel).
-        sweeps: mean-field sweeps on the full grid after the EM.
+        sweeps: mean-field sweeps on the full grid after an EM on a strided sample of it.
         precision: "float32" (default, see module docstring) or "float64".
         atlas_voxel_mm, atlas_subjects: the default atlas used when `segment` gets none.
     """
@@ -98,7 +102,7 @@ class SegmentConfig:
     relax_sigma_mm: float = 2.0
     bias_degree: int | None = None
     max_iter: int = 50
-    tol: float = 1e-5
+    tol: float = 1e-4
     em_sample_mm: float = 2.0
     sweeps: int = 3
     precision: Literal["float32", "float64"] = "float32"
@@ -161,7 +165,8 @@ class Segmentation(eqx.Module):
         transform: the atlas registration (scan mm -> atlas mm).
         params: fitted Gaussian mixture (means/variances in log intensity for MRI, HU for CT).
         component_class: the class of each Gaussian.
-        bias_field: (x, y, z) multiplicative MRI bias field (ones for CT).
+        bias_field: (x, y, z) MRI: the multiplicative bias field exp(b) (scan = bias * true image);
+            CT: the additive field in HU (zeros unless cfg.bias_degree > 0).
         n_iter: EM iterations.
         converged: whether the EM met its tolerance.
     """
@@ -221,6 +226,69 @@ def _em_data(volume: Volume, modality: str):
     return np.log(np.maximum(d, 1e-3 * p99))
 
 
+def _dtype(cfg: SegmentConfig):
+    dtype = jnp.float32 if cfg.precision == "float32" else jnp.float64
+    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
+        raise ValueError("`cfg.precision` is 'float64' but JAX x64 is off; enable jax_enable_x64 at your entry point.")
+    return dtype
+
+
+def register_atlas(volume: Volume, atlas: Atlas, cfg: SegmentConfig = SegmentConfig()):
+    """Register the atlas template to the scan and resample the atlas priors onto the scan's grid.
+
+    Arguments:
+        volume: the scan.
+        atlas: an Atlas of the scan's modality.
+        cfg: SegmentConfig (its `register` settings and precision are used).
+    Returns:
+        (transform scan mm -> atlas mm, priors (5, x, y, z) jax array on the scan's grid).
+    """
+    dtype = _dtype(cfg)
+    transform = register(volume, atlas.template_volume(), cfg.register, dtype=dtype)
+    priors = resample(atlas.priors, atlas.affine, transform, volume.shape, volume.affine, dtype=dtype)
+    return transform, priors
+
+
+def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig()):
+    """EM + MRF classification of a scan given priors on its grid (the second half of `segment`).
+
+    Arguments:
+        volume: the scan (MRI magnitude or CT in HU).
+        priors: (5, x, y, z) class priors on the scan's grid (e.g. from `register_atlas`).
+        cfg: SegmentConfig.
+    Returns:
+        (posteriors (5, x, y, z) float32 numpy, EMResult of the parameter fit (on the strided
+        sample), EMOptions used, bias coordinates of the full grid).
+    """
+    dtype = _dtype(cfg)
+    vox = voxel_sizes(volume.affine)
+    stride = tuple(int(max(1, round(cfg.em_sample_mm / v))) for v in vox)
+    # Pad the grid (edge values: air) up to a multiple of 8 strided voxels so that scans of similar
+    # size share compiled code; the padding is cropped off the results.
+    shape = volume.shape
+    padded = tuple(-(-n // (8 * s)) * 8 * s for n, s in zip(shape, stride))
+    pad = [(0, p - n) for p, n in zip(padded, shape)]
+    y_full = jnp.asarray(np.pad(_em_data(volume, cfg.modality), pad, mode="edge"), dtype)
+    priors = jnp.pad(jnp.asarray(priors, dtype), [(0, 0)] + pad, mode="edge")
+    sl = tuple(slice(None, None, s) for s in stride)
+    opts = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox * np.asarray(stride))))
+    coords_full = _coords(shape, padded, 1, dtype)
+    coords_s = tuple(c[::s] for c, s in zip(coords_full, stride))
+    res = fit_mixture(y_full[sl], priors[(slice(None),) + sl], opts, None, coords_s)
+    log.info(
+        "segment (%s): EM %d iterations (converged %s), means %s", cfg.modality, int(res.n_iter),
+        bool(res.converged), np.round(np.asarray(res.params.means), 3).tolist(),
+    )
+    if all(s == 1 for s in stride):
+        post = res.posteriors  # the EM ran on the full grid
+    else:
+        opts_full = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox)))
+        post = infer_posteriors(y_full, priors, res.params, opts_full, cfg.sweeps, coords_full)
+    crop = (slice(None),) + tuple(slice(0, n) for n in shape)
+    post = np.asarray(post[crop], dtype=np.float32)
+    return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape))
+
+
 def segment(volume: Volume, atlas: Atlas | None = None, cfg: SegmentConfig = SegmentConfig()) -> Segmentation:
     """Segment a head MRI or CT into BACKGROUND, BRAIN, CSF, SKULL and SCALP.
 
@@ -232,52 +300,22 @@ def segment(volume: Volume, atlas: Atlas | None = None, cfg: SegmentConfig = Seg
         Segmentation (labels, posteriors, transform, mixture parameters, bias field).
     """
     _check_inputs(volume, atlas, cfg)
+    _dtype(cfg)
     if atlas is None:
         atlas = default_atlas(cfg.modality, voxel_mm=cfg.atlas_voxel_mm, n_subjects=cfg.atlas_subjects)
-    dtype = jnp.float32 if cfg.precision == "float32" else jnp.float64
-    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
-        raise ValueError("`cfg.precision` is 'float64' but JAX x64 is off; enable jax_enable_x64 at your entry point.")
-
     t0 = time.perf_counter()
-    transform = register(volume, atlas.template_volume(), cfg.register, dtype=dtype)
-    priors = resample(atlas.priors, atlas.affine, transform, volume.shape, volume.affine, dtype=dtype)
+    transform, priors = register_atlas(volume, atlas, cfg)
     priors.block_until_ready()
     t1 = time.perf_counter()
-
-    vox = voxel_sizes(volume.affine)
-    stride = tuple(int(max(1, round(cfg.em_sample_mm / v))) for v in vox)
-    # Pad the grid (edge values: air) up to a multiple of 8 strided voxels so that scans of similar
-    # size share compiled code; the padding is cropped off the results.
-    shape = volume.shape
-    padded = tuple(-(-n // (8 * s)) * 8 * s for n, s in zip(shape, stride))
-    pad = [(0, p - n) for p, n in zip(padded, shape)]
-    y_full = jnp.asarray(np.pad(_em_data(volume, cfg.modality), pad, mode="edge"), dtype)
-    priors = jnp.pad(priors, [(0, 0)] + pad, mode="edge")
-    sl = tuple(slice(None, None, s) for s in stride)
-    y_s = y_full[sl]
-    p_s = priors[(slice(None),) + sl]
-    opts = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox * np.asarray(stride))))
-    coords_full = _coords(shape, padded, 1, dtype)
-    coords_s = tuple(c[::s] for c, s in zip(coords_full, stride))
-    res = fit_mixture(y_s, p_s, opts, None, coords_s)
+    post, res, opts, coords = classify(volume, priors, cfg)
     t2 = time.perf_counter()
-    log.info(
-        "segment (%s): EM %d iterations (converged %s), means %s", cfg.modality, int(res.n_iter),
-        bool(res.converged), np.round(np.asarray(res.params.means), 3).tolist(),
-    )
-    opts_full = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox)))
-    post = infer_posteriors(y_full, priors, res.params, opts_full, cfg.sweeps, coords_full)
-    crop = (slice(None),) + tuple(slice(0, n) for n in shape)
-    post = np.asarray(post[crop], dtype=np.float32)
-    t3 = time.perf_counter()
-    log.info("segment timings (s, compile included): registration %.1f, EM %.1f, full-grid posteriors %.1f",
-             t1 - t0, t2 - t1, t3 - t2)
+    log.info("segment timings (s, compile included): registration %.1f, EM + MRF %.1f", t1 - t0, t2 - t1)
     labels = LabelMap(np.argmax(post, axis=0).astype(np.uint8), volume.affine)
-    if cfg.modality == "mri" and opts.bias_degree > 0:
-        b = bias_field(res.params.bias, tuple(c[:n] for c, n in zip(coords_full, shape)), opts.bias_degree)
-        bias = np.exp(np.asarray(b, dtype=np.float64))
+    if opts.bias_degree > 0:
+        b = np.asarray(bias_field(res.params.bias, coords, opts.bias_degree), dtype=np.float64)
+        bias = np.exp(b) if cfg.modality == "mri" else b
     else:
-        bias = np.ones(volume.shape)
+        bias = np.ones(volume.shape) if cfg.modality == "mri" else np.zeros(volume.shape)
     params = jax.tree.map(np.asarray, res.params)
     return Segmentation(
         labels=labels, posteriors=post, transform=transform, params=params, component_class=opts.component_class,
