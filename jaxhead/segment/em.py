@@ -45,9 +45,6 @@ from jax import lax
 from .mrf import neighbour_sum
 
 
-_DEBUG = False
-
-
 @dataclass(frozen=True, kw_only=True)
 class EMOptions:
     """Static settings of `fit_mixture` (hashable, so it can be a jit static argument).
@@ -433,8 +430,6 @@ def fit_mixture(y, priors, opts: EMOptions, init: MixtureParams | None = None, c
             )
             phase = phase + switch.astype(phase.dtype)
             ll_prev = jnp.where(switch, -jnp.inf, ll_cur)  # the relaxed problem starts afresh
-        if _DEBUG:
-            jax.debug.print("it {} phase {} ll {} mu {}", it, phase, ll, mu * s + c)
         return it + 1, phase, mu, var, w, coef, post, prior, ll, ll_prev
 
     def cond(state):

@@ -577,7 +577,8 @@ def _ffd_cost(coefficients, args):
 
 def _scaled_ffd_cost(coefficients, args):
     scale, inner = args
-    return scale * _ffd_cost(coefficients, inner)
+    dtype = inner[0].points.dtype
+    return (scale * _ffd_cost(coefficients.astype(dtype), inner)).astype(coefficients.dtype)
 
 
 @eqx.filter_jit
@@ -587,11 +588,18 @@ def _solve_ffd(c0, data, kind, n_bins, lam, spacing, step_mm, rtol, atol, max_st
     # Scale the cost so that the first step moves the steepest control point by `step_mm` (about a
     # voxel); L-BFGS's curvature pairs take over from there. The optimum is unchanged.
     inner = (data, kind, n_bins, lam, spacing)
+    dtype = c0.dtype
     g0 = jax.grad(_ffd_cost)(c0, inner)
-    scale = step_mm / (jnp.max(jnp.abs(g0)) + jnp.finfo(c0.dtype).tiny)
+    scale = step_mm / (jnp.max(jnp.abs(g0)) + jnp.finfo(dtype).tiny)
+    # optimistix 0.1.0's L-BFGS allocates its history in the default float dtype, so with x64 on it
+    # cannot run on float32 parameters: keep the optimiser's parameters in the default dtype and
+    # evaluate the cost in the data's dtype.
+    wide = jnp.result_type(float)
     solver = optx.LBFGS(rtol=rtol, atol=atol)
-    sol = optx.minimise(_scaled_ffd_cost, solver, c0, args=(scale, inner), max_steps=max_steps, throw=False)
-    return sol.value, sol.stats["num_steps"], _ffd_cost(sol.value, inner)
+    sol = optx.minimise(_scaled_ffd_cost, solver, c0.astype(wide), args=(scale.astype(wide), inner),
+                        max_steps=max_steps, throw=False)
+    value = sol.value.astype(dtype)
+    return value, sol.stats["num_steps"], _ffd_cost(value, inner)
 
 
 def bspline_register(

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, voxel_sizes
-from .atlas import N_CLASSES, Atlas, check_modality, default_atlas
+from .atlas import N_CLASSES, Atlas, default_atlas
 from .em import EMOptions, MixtureParams, bias_field, fit_mixture, infer_posteriors
 from .register import RegisterConfig, Transform, register, resample
 
