@@ -281,11 +281,13 @@ def _assemble(model: ForwardModel, sigma, nodes, z):
     z = eqx.error_if(z, jnp.any(~(z > 0)),
                      "`contact_impedance` must be > 0 Ohm m^2 (got <= 0 or NaN).")
     x = _geometry(model, nodes)
-    if sigma.shape[0] == len(TISSUES) and model.n_tets != len(TISSUES):
-        # per-tissue conductivity: a linear combination of the tissues' stiffness values
-        tv = model.tissue_values if nodes is None else _tissue_values(model, nodes)
-        values = sigma @ tv
+    per_tissue = sigma.shape[0] == len(TISSUES) and model.n_tets != len(TISSUES)
+    if per_tissue and nodes is None:
+        # a linear combination of the tissues' precomputed stiffness values: no element loop
+        values = sigma @ model.tissue_values
     else:
+        if per_tissue:
+            sigma = sigma[model.labels - 1]
         k1 = tet_stiffness(x, model.tets)
         if nodes is not None:
             k1 = eqx.error_if(k1, jnp.any(~(tet_volumes(x, model.tets) > 0)),
