@@ -34,7 +34,7 @@ from jaxhead.mesh import MeshConfig, tetrahedralize_reported  # noqa: E402
 from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.quality import quality_report  # noqa: E402
 from jaxhead.segment.layers import make_layers  # noqa: E402
-from jaxhead.surface import extract_surfaces  # noqa: E402
+from jaxhead.surface import SurfaceConfig, extract_surfaces  # noqa: E402
 from jaxhead.tissue import TISSUES  # noqa: E402
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
@@ -57,6 +57,8 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=0, help="fTetWild threads (0: all cores)")
     ap.add_argument("--edge-mm", type=str, default=None,
                     help='JSON per-tissue edges, e.g. \'{"brain": 4, "csf": 2, "skull": 2.5, "scalp": 3}\'')
+    ap.add_argument("--surface-edge-mm", type=str, default=None,
+                    help="JSON per-tissue surface edges for SurfaceConfig.edge_mm (coarser surfaces: fewer tets)")
     ap.add_argument("--improve", choices=("relocate", "none"), default="relocate")
     ap.add_argument("--save", type=str, default=None, help="save nodes/tets/labels to this .npz")
     a = ap.parse_args(argv)
@@ -69,7 +71,8 @@ def main(argv=None):
     layers = make_layers(labels)
     t["make_layers"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    surfaces = extract_surfaces(layers)
+    scfg = SurfaceConfig(edge_mm=json.loads(a.surface_edge_mm)) if a.surface_edge_mm else SurfaceConfig()
+    surfaces = extract_surfaces(layers, scfg)
     t["extract_surfaces"] = time.perf_counter() - t0
     kw = {"threads": a.threads, "improve": a.improve}
     if a.edge_mm:
