@@ -15,7 +15,8 @@ det = e1 . (e2 x e3) = 6 V:
     c1 = e2 x e3,  c2 = e3 x e1,  c3 = e1 x e2,  c0 = -(c1 + c2 + c3),
     grad phi_a = c_a / det,
     K_ab = sigma V grad phi_a . grad phi_b = sigma (c_a . c_b) / (6 det).
-For a triangle of area |T|: int_T phi_a phi_b dS = |T| (1 + delta_ab) / 12, int_T phi_a dS = |T| / 3.
+For a triangle of area |T|: int_T phi_a phi_b dS = |T| (1 + delta_ab) / 12 and
+int_T phi_a dS = |T| / 3.
 """
 
 from __future__ import annotations

@@ -257,15 +257,21 @@ def _geometry(model, nodes):
     return to_metres(model.nodes if nodes is None else nodes)
 
 
+def _stiffness(model: ForwardModel, x, nodes):
+    """Unit-sigma element stiffness (n_tets, 10); moved nodes must keep every tet positive."""
+    k1 = tet_stiffness(x, model.tets)
+    if nodes is None:
+        return k1  # the mesh's own nodes: checked by TetMesh
+    # Inverted or flat tets make the matrix indefinite: an error, not a wrong answer.
+    return eqx.error_if(k1, jnp.any(~(tet_volumes(x, model.tets) > 0)),
+                        "`nodes` inverts or flattens some tets (volume <= 0); the FEM needs "
+                        "every tet positively oriented.")
+
+
 def _tissue_values(model: ForwardModel, nodes):
     """(4, nnz) stored values of each tissue's unit-conductivity stiffness (S per S/m)."""
     x = _geometry(model, nodes)
-    k1 = tet_stiffness(x, model.tets)
-    if nodes is not None:
-        # Inverted or flat tets (possible when `nodes` moves) make the matrix indefinite.
-        k1 = eqx.error_if(k1, jnp.any(~(tet_volumes(x, model.tets) > 0)),
-                          "`nodes` inverts or flattens some tets (volume <= 0); the FEM needs "
-                          "every tet positively oriented.")
+    k1 = _stiffness(model, x, nodes)
     onehot = model.labels[:, None] == jnp.asarray([int(t) for t in TISSUES])
     contrib = (k1[:, :, None] * onehot[:, None, :].astype(k1.dtype)).reshape(-1, len(TISSUES))
     return scatter_add(contrib, model.order, model.targets, model.nnz).T
@@ -288,11 +294,7 @@ def _assemble(model: ForwardModel, sigma, nodes, z):
     else:
         if per_tissue:
             sigma = sigma[model.labels - 1]
-        k1 = tet_stiffness(x, model.tets)
-        if nodes is not None:
-            k1 = eqx.error_if(k1, jnp.any(~(tet_volumes(x, model.tets) > 0)),
-                              "`nodes` inverts or flattens some tets (volume <= 0); the FEM "
-                              "needs every tet positively oriented.")
+        k1 = _stiffness(model, x, nodes)
         values = scatter_add((sigma[:, None] * k1).ravel(), model.order, model.targets,
                              model.nnz)
     cem = cem_values(x, model.faces, model.face_electrode, model.free_faces, z)
@@ -559,7 +561,7 @@ def _tet_rows(model, nodes, fields, d_idx, m_idx, scale, out_dtype, tile, out=No
 
 
 def jacobian(model: ForwardModel, sigma, protocol, *, per: str = "tet", nodes=None,
-             contact_impedance=None, dtype=None, tile_tets: int = 4096, out=None,
+             contact_impedance=None, dtype=None, tile_tets: int = 8192, out=None,
              return_volts: bool = False):
     """Sensitivity of the protocol's voltages to conductivity, by reciprocity (no autodiff).
 

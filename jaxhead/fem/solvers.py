@@ -791,7 +791,8 @@ class BlockCG(AbstractSolver):
         max_steps: iteration limit.
     """
 
-    preconditioner: eqx.Module = eqx.field(static=True, default_factory=lambda: SmoothedAggregation())
+    preconditioner: eqx.Module = eqx.field(static=True,
+                                           default_factory=lambda: SmoothedAggregation())
     rtol: float = eqx.field(static=True, default=1e-10)
     atol: float = eqx.field(static=True, default=0.0)
     max_steps: int = eqx.field(static=True, default=2000)
