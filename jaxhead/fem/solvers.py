@@ -54,32 +54,83 @@ logger = logging.getLogger(__name__)
 LONG_ROW = 64
 
 
-class PatternArrays(eqx.Module):
-    """The full symmetric pattern as arrays, for the JAX mat-vec (ELL + COO overflow).
+class Ell(eqx.Module):
+    """A sparse matrix's pattern for fast mat-vecs in JAX: ELLPACK block plus COO overflow.
 
-    The mat-vec avoids a scatter over all non-zeros (slow in XLA on CPU): every row's first
-    `ell_width` entries are gathered and reduced in an (n, ell_width) block (ELLPACK; padding
-    points at a zero value), and the entries beyond that (only rows longer than `LONG_ROW`)
-    are summed by a small segment-sum.
+    A scatter over all non-zeros (segment_sum) is slow in XLA on CPU; instead every row's first
+    `width` entries are gathered and reduced in an (n_rows, width) block (padding points at a
+    zero value), and the entries beyond (only rows longer than `LONG_ROW`) are summed by a
+    small segment-sum.
 
     Attributes:
-        ell_cols, ell_vals: (n, ell_width) column and stored-value index of each row's entries
-            (padding: column 0, value index nnz, which reads 0).
+        cols, vals: (n_rows, width) column and value index of each row's entries (padding:
+            column 0, value index `nnz`, which reads 0).
         ovf_rows, ovf_cols, ovf_vals: (n_ovf,) the overflow entries.
+        n_rows, nnz: rows and length of the values array.
+    """
+
+    cols: jax.Array
+    vals: jax.Array
+    ovf_rows: jax.Array
+    ovf_cols: jax.Array
+    ovf_vals: jax.Array
+    n_rows: int = eqx.field(static=True)
+    nnz: int = eqx.field(static=True)
+
+    @classmethod
+    def from_coo(cls, rows, cols, val_idx, n_rows: int, nnz: int) -> "Ell":
+        """From COO entries sorted by row; val_idx says which value each entry reads."""
+        rows, cols, val_idx = (np.asarray(a, np.int64) for a in (rows, cols, val_idx))
+        starts = np.searchsorted(rows, np.arange(n_rows + 1))
+        length = np.diff(starts)
+        # width: the longest row among all but the 0.1 % longest (and <= LONG_ROW), so the few
+        # long rows (electrodes, coarse aggregates) overflow instead of widening every row
+        width = max(1, int(min(np.percentile(length, 99.9, method="lower"), LONG_ROW)))
+        pos = np.arange(rows.size) - starts[rows]
+        inside = pos < width
+        ell_cols = np.zeros((n_rows, width), np.int32)
+        ell_vals = np.full((n_rows, width), nnz, np.int32)
+        ell_cols[rows[inside], pos[inside]] = cols[inside]
+        ell_vals[rows[inside], pos[inside]] = val_idx[inside]
+        out = ~inside
+
+        def i32(a):
+            return jnp.asarray(a, dtype=jnp.int32)
+
+        return cls(cols=i32(ell_cols), vals=i32(ell_vals), ovf_rows=i32(rows[out]),
+                   ovf_cols=i32(cols[out]), ovf_vals=i32(val_idx[out]), n_rows=n_rows,
+                   nnz=nnz)
+
+    def apply(self, values, x):
+        """M x for values (nnz,) and x (n_cols,) or (n_cols, k)."""
+        v = jnp.concatenate([values, jnp.zeros((1,), values.dtype)])
+        vec = x.ndim == 1
+        x2 = x[:, None] if vec else x
+        V = v[self.vals]  # one gather, so the transpose (values' cotangent) is one scatter
+        y = jnp.zeros((self.n_rows, x2.shape[1]), jnp.result_type(values, x))
+        for k in range(self.cols.shape[1]):  # unrolled: one fused gather-multiply-add
+            y = y + V[:, k, None] * x2[self.cols[:, k]]
+        y = y + jax.ops.segment_sum(v[self.ovf_vals][:, None] * x2[self.ovf_cols],
+                                    self.ovf_rows, num_segments=self.n_rows,
+                                    indices_are_sorted=True)
+        return y[:, 0] if vec else y
+
+
+class PatternArrays(eqx.Module):
+    """The symmetric matrix pattern as arrays for JAX: mat-vec plan and index maps.
+
+    Attributes:
+        ell: the full symmetric pattern as an `Ell` over the stored (upper) values.
         diag: (n,) stored entry of each diagonal element.
-        rows, cols, to_upper: (nnz_full,) the full COO pattern (sorted by row) for set-ups.
+        rows, cols, to_upper: (nnz_full,) the full COO pattern (sorted by row).
         n, nnz: matrix size and number of stored entries.
     """
 
-    ell_cols: np.ndarray
-    ell_vals: np.ndarray
-    ovf_rows: np.ndarray
-    ovf_cols: np.ndarray
-    ovf_vals: np.ndarray
-    diag: np.ndarray
-    rows: np.ndarray
-    cols: np.ndarray
-    to_upper: np.ndarray
+    ell: Ell
+    diag: jax.Array
+    rows: jax.Array
+    cols: jax.Array
+    to_upper: jax.Array
     n: int = eqx.field(static=True)
     nnz: int = eqx.field(static=True)
 
@@ -89,36 +140,14 @@ class PatternArrays(eqx.Module):
             return jnp.asarray(a, dtype=jnp.int32)
 
         rows, cols, up = pattern.full_rows, pattern.full_cols, pattern.full_to_upper
-        n = pattern.n
-        starts = np.searchsorted(rows, np.arange(n + 1))
-        length = np.diff(starts)
-        # ELL width: the longest row among all but the 0.1 % longest (and <= LONG_ROW), so
-        # the few long rows (electrodes) overflow instead of widening every row
-        width = int(min(np.percentile(length, 99.9, method="lower"), LONG_ROW))
-        pos = np.arange(rows.size) - starts[rows]  # position of each entry within its row
-        in_ell = pos < width
-        ell_cols = np.zeros((n, width), np.int64)
-        ell_vals = np.full((n, width), pattern.nnz, np.int64)
-        ell_cols[rows[in_ell], pos[in_ell]] = cols[in_ell]
-        ell_vals[rows[in_ell], pos[in_ell]] = up[in_ell]
-        ovf = ~in_ell
-        return cls(ell_cols=i32(ell_cols), ell_vals=i32(ell_vals), ovf_rows=i32(rows[ovf]),
-                   ovf_cols=i32(cols[ovf]), ovf_vals=i32(up[ovf]), diag=i32(pattern.diag),
-                   rows=i32(rows), cols=i32(cols), to_upper=i32(up), n=n, nnz=pattern.nnz)
+        return cls(ell=Ell.from_coo(rows, cols, up, pattern.n, pattern.nnz),
+                   diag=i32(pattern.diag), rows=i32(rows), cols=i32(cols), to_upper=i32(up),
+                   n=pattern.n, nnz=pattern.nnz)
 
 
 def matvec(p: PatternArrays, values, x):
     """A x for the symmetric matrix with stored values `values` (nnz,); x is (n,) or (n, k)."""
-    v = jnp.concatenate([values, jnp.zeros((1,), values.dtype)])
-    vec = x.ndim == 1
-    x2 = x[:, None] if vec else x
-    V = v[p.ell_vals]  # one gather, so the transpose (values' cotangent) is one scatter
-    y = jnp.zeros((p.n, x2.shape[1]), jnp.result_type(values, x))
-    for k in range(p.ell_cols.shape[1]):  # unrolled: one fused gather-multiply-add
-        y = y + V[:, k, None] * x2[p.ell_cols[:, k]]
-    y = y + jax.ops.segment_sum(v[p.ovf_vals][:, None] * x2[p.ovf_cols], p.ovf_rows,
-                                num_segments=p.n, indices_are_sorted=True)
-    return y[:, 0] if vec else y
+    return p.ell.apply(values, x)
 
 
 def matvecs(p: PatternArrays, values, x):
@@ -130,7 +159,7 @@ def matvecs(p: PatternArrays, values, x):
     loop iteration's gathers its own.
     """
     def one(t, v):
-        q = eqx.tree_at(lambda q: q.ell_cols, p, p.ell_cols + jnp.minimum(t, 0))
+        q = eqx.tree_at(lambda q: q.ell.cols, p, p.ell.cols + jnp.minimum(t, 0))
         return matvec(q, v, x)
 
     return jax.lax.map(lambda tv: one(*tv), (jnp.arange(values.shape[0]), values))
@@ -501,8 +530,14 @@ class _Coarsening(eqx.Module):
     `pa_target` (nnz_a,) puts a_ij into entry (i, agg(j)).
     Coarse matrix A_c = P^T (A P): `ap_a, ap_p -> ap_target` for B = A P (entries b_rows,
     b_cols) and `pb_p, pb_b -> pb_target` for P^T B, whose pattern is the next level's.
+    Mat-vec plans (`Ell`): `a_ell` for this level's matrix (over its COO values), `p_ell`
+    for P and `pt_ell` for P^T (over P's values); `a_diag` (n_f,) the diagonal's entries.
     """
 
+    a_ell: Ell
+    p_ell: Ell
+    pt_ell: Ell
+    a_diag: jax.Array
     p_rows: np.ndarray
     p_cols: np.ndarray
     pt_target: np.ndarray
@@ -662,7 +697,10 @@ class SmoothedAggregation(eqx.Module):
             pb_p = order[pb_pt]
             i32 = lambda a: jnp.asarray(a, dtype=jnp.int32)  # noqa: E731
             lev = _Coarsening(
-                p_rows=i32(p_rows), p_cols=i32(p_cols), pt_target=i32(inv[:n]),
+                a_ell=Ell.from_coo(rows, cols, np.arange(rows.size), n, rows.size),
+                p_ell=Ell.from_coo(p_rows, p_cols, np.arange(p_rows.size), n, p_rows.size),
+                pt_ell=Ell.from_coo(p_cols[order], p_rows[order], order, nc, p_rows.size),
+                a_diag=i32(np.flatnonzero(rows == cols)), p_rows=i32(p_rows), p_cols=i32(p_cols), pt_target=i32(inv[:n]),
                 pa_target=i32(inv[n:]), ap_a=i32(ap_a), ap_p=i32(ap_p), ap_target=i32(ap_t),
                 b_rows=i32(b_rows), pb_p=i32(pb_p), pb_b=i32(pb_b), pb_target=i32(pb_t),
                 c_rows=i32(c_rows), c_cols=i32(c_cols), n_fine=n, n_coarse=nc,
@@ -680,44 +718,30 @@ class SmoothedAggregation(eqx.Module):
     def build(self, state, pattern: PatternArrays, values):
         levels = state
         rows, cols, n = pattern.rows, pattern.cols, pattern.n
-        vals = values[pattern.to_upper]
+        vals = values[pattern.to_upper]  # level 0 as full COO values
         ops = []
         for lev in levels:
             p, c = _coarse_values(lev, rows, cols, vals, n)
-            ops.append((rows, cols, vals, n, lev, p))
+            d = vals[lev.a_diag]
+            rho = jnp.max(lev.a_ell.apply(jnp.abs(vals), jnp.ones(n)) / d)  # Gershgorin
+            ops.append((lev, vals, p, (4.0 / (3.0 * rho)) / d))
             rows, cols, vals, n = lev.c_rows, lev.c_cols, c, lev.n_coarse
         dense = jnp.zeros((n, n), vals.dtype).at[rows, cols].add(vals)
         chol = jax.scipy.linalg.cho_factor(dense, lower=True)
         sweeps = self.sweeps
 
-        def mv(rows, cols, vals, n, x):
-            return jax.ops.segment_sum(vals[:, None] * x[cols], rows, num_segments=n,
-                                       indices_are_sorted=True)
-
-        smoothers = []
-        for rows_l, cols_l, vals_l, n_l, lev, p in ops:
-            on = rows_l == cols_l
-            d = jax.ops.segment_sum(jnp.where(on, vals_l, 0.0), rows_l, num_segments=n_l,
-                                    indices_are_sorted=True)
-            w = (4.0 / (3.0 * _spectral_bound(rows_l, cols_l, vals_l, d, n_l))) / d
-            smoothers.append(w)
-
         def vcycle(level, r):
             if level == len(ops):
                 return jax.scipy.linalg.cho_solve(chol, r)
-            rows_l, cols_l, vals_l, n_l, lev, p = ops[level]
-            w = smoothers[level][:, None]
+            lev, vals_l, p, w = ops[level]
+            w = w[:, None]
             x = w * r
             for _ in range(sweeps - 1):
-                x = x + w * (r - mv(rows_l, cols_l, vals_l, n_l, x))
-            res = r - mv(rows_l, cols_l, vals_l, n_l, x)
-            rc = jax.ops.segment_sum(p[:, None] * res[lev.p_rows], lev.p_cols,
-                                     num_segments=lev.n_coarse)
-            xc = vcycle(level + 1, rc)
-            x = x + jax.ops.segment_sum(p[:, None] * xc[lev.p_cols], lev.p_rows,
-                                        num_segments=n_l, indices_are_sorted=True)
+                x = x + w * (r - lev.a_ell.apply(vals_l, x))
+            xc = vcycle(level + 1, lev.pt_ell.apply(p, r - lev.a_ell.apply(vals_l, x)))
+            x = x + lev.p_ell.apply(p, xc)
             for _ in range(sweeps):
-                x = x + w * (r - mv(rows_l, cols_l, vals_l, n_l, x))
+                x = x + w * (r - lev.a_ell.apply(vals_l, x))
             return x
 
         def apply(r):
