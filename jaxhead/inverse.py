@@ -5,9 +5,11 @@ voltage change. Both methods act through the thin SVD J = U S V^T (Hansen 1998, 
 discrete ill-posed problems"; Bagshaw et al. 2003 use TSVD for head EIT, as the seed paper does).
 """
 
+import functools
 from typing import Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -16,10 +18,18 @@ Rule = Literal["gcv", "discrepancy"]
 
 
 class TSVD(eqx.Module):
-    """Truncated SVD: keep the `k` largest singular values (chosen by `rule` when None)."""
+    """Truncated SVD: keep the `k` largest singular values (chosen by `rule` when None).
+
+    `noise_weighted` truncates the SVD of W J (W = diag(1 / noise_std)) applied to W dv, i.e.
+    whitened data; `normalise` solves for D x with D = diag(column norms of (W) J), the NOSER
+    scaling (Cheney et al. 1990, Int. J. Imaging Syst. Technol. 2:66), which removes the
+    zeroth-order prior's pull of the image towards the most sensitive (superficial) elements.
+    """
 
     k: int | None = eqx.field(static=True, default=None)
     rule: Rule = eqx.field(static=True, default="gcv")
+    noise_weighted: bool = eqx.field(static=True, default=False)
+    normalise: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.k is not None and self.k < 1:
@@ -28,14 +38,17 @@ class TSVD(eqx.Module):
 
 
 class Tikhonov(eqx.Module):
-    """Zeroth-order Tikhonov: minimise ||W (J x - dv)||^2 + lam^2 ||x||^2.
+    """Zeroth-order Tikhonov: minimise ||W (J x - dv)||^2 + lam^2 ||D x||^2.
 
-    `lam` is chosen by `rule` when None; `noise_weighted` uses W = diag(1 / noise_std) per channel.
+    `lam` is chosen by `rule` when None; `noise_weighted` uses W = diag(1 / noise_std) per
+    channel (else W = I); `normalise` uses D = diag(column norms of W J), the NOSER prior
+    (Cheney et al. 1990), else D = I.
     """
 
     lam: float | None = eqx.field(static=True, default=None)
     rule: Rule = eqx.field(static=True, default="gcv")
     noise_weighted: bool = eqx.field(static=True, default=False)
+    normalise: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.lam is not None and not self.lam > 0:
@@ -56,7 +69,7 @@ class Reconstruction(eqx.Module):
         method: "tsvd" or "tikhonov".
         k: kept singular values (TSVD) or the effective number of parameters sum f_i (Tikhonov).
         lam: Tikhonov parameter (NaN for TSVD).
-        residual_norm: ||J x - dv|| (of W J x - W dv with noise weighting).
+        residual_norm: ||J x - dv|| (||W (J x - dv)|| with noise weighting).
         rule: how k / lam was chosen ("given", "gcv", "discrepancy").
     """
 
@@ -69,25 +82,48 @@ class Reconstruction(eqx.Module):
 
 
 class SVD(eqx.Module):
-    """Thin SVD of a sensitivity matrix (computed once, reused for every reconstruction)."""
+    """Thin SVD of a (column-scaled) sensitivity matrix, reused for every reconstruction.
+
+    Attributes:
+        u: (n_rows, r), s: (r,), vt: (r, n_params): J D^-1 = U S V^T.
+        scale: (n_params,) the column scaling D (ones unless `svd(J, normalise=True)`).
+        normalised: whether D holds J's column norms.
+    """
 
     u: Float[Array, "n_rows r"]
     s: Float[Array, " r"]
     vt: Float[Array, "r n_params"]
+    scale: Float[Array, " n_params"]
+    normalised: bool = eqx.field(static=True, default=False)
 
 
-def svd(J) -> SVD:
-    """Thin SVD of J (n_rows, n_params) in float64, via the Gram matrix when n_params >> n_rows.
+def svd(J, *, normalise: bool = False) -> SVD:
+    """Thin SVD of J (n_rows, n_params) in float64, via the Gram matrix when n_params > 2 n_rows.
 
-    For n_params >> n_rows, the eigendecomposition of J J^T (n_rows^2) costs O(n_rows^2 n_params)
-    and gives U and S; V^T = S^-1 U^T J. Singular values below eps * s_max are dropped (they carry
-    no information in float64 and would divide by ~0).
+    For a wide J, the eigendecomposition of J J^T (n_rows^2) costs O(n_rows^2 n_params) with a
+    small constant and gives U and S; V^T = S^-1 U^T J. It squares the condition number, so
+    singular values below sqrt(eps) s_max are dropped; below that they carry nothing at any
+    realistic noise level (0.5 % noise is 5e-3). Otherwise LAPACK's SVD, dropping values
+    below eps max(m, n) s_max.
+
+    Arguments:
+        J: (n_rows, n_params) matrix.
+        normalise: decompose J D^-1 with D = diag(||J[:, j]||) (columns that are all zero keep
+            scale 1).
+
+    Returns:
+        An `SVD`.
     """
     J = jnp.asarray(J, dtype=jnp.float64)
     if J.ndim != 2:
         raise ValueError(f"`J` must be 2D (n_rows, n_params), got shape {J.shape}.")
     m, n = J.shape
-    if n > 4 * m:
+    scale = jnp.ones(n)
+    if normalise:
+        norms = jnp.linalg.norm(J, axis=0)
+        scale = jnp.where(norms > 0, norms, 1.0)
+        J = J / scale
+    if n > 2 * m:
         gram = J @ J.T
         w, u = jnp.linalg.eigh(gram)
         order = jnp.argsort(w)[::-1]
@@ -100,23 +136,131 @@ def svd(J) -> SVD:
         u, s, vt = jnp.linalg.svd(J, full_matrices=False)
         keep = np.asarray(s > s[0] * jnp.finfo(jnp.float64).eps * max(m, n))
         u, s, vt = u[:, keep], s[keep], vt[keep]
-    return SVD(u, s, vt)
+    return SVD(u, s, vt, scale, bool(normalise))
 
 
 def _weights(dv, noise_std):
     if noise_std is None:
         return None
-    w = jnp.broadcast_to(jnp.asarray(noise_std, jnp.float64), dv.shape)
-    if not bool(jnp.all(w > 0)):
-        raise ValueError("`noise_std` must be > 0 for every channel.")
+    w = jnp.broadcast_to(jnp.asarray(noise_std, jnp.float64), dv.shape[-1:])
+    if not bool(jnp.all(jnp.isfinite(w) & (w > 0))):
+        raise ValueError("`noise_std` must be finite and > 0 for every channel (V).")
     return 1.0 / w
 
 
 def _filtered(dec: SVD, beta, perp2, f):
     """Image, residual norm^2 and trace for filter factors f (Hansen 1998, eq. 4.3 ff.)."""
-    x = dec.vt.T @ (f * beta / dec.s)
+    x = (dec.vt.T @ (f * beta / dec.s)) / dec.scale
     r2 = jnp.sum(((1.0 - f) * beta) ** 2) + perp2
     return x, r2, jnp.sum(f)
+
+
+_N_LAMBDA = 200  # Tikhonov lambda grid: 200 log-spaced values from 1e-8 s_max to 10 s_max
+
+
+@functools.partial(jax.jit, static_argnames=("kind", "rule", "given", "per_channel"))
+def _core(dec: SVD, b, w, k_or_lam, *, kind: str, rule: str, given: bool, per_channel: bool):
+    """Filter factors by the method's rule, the image and its figures: pure JAX, vmappable.
+
+    Arguments:
+        dec: SVD of the (weighted) matrix; b: (n_rows,) (weighted) data.
+        w: (n_rows,) inverse noise std per channel (ones when unknown; used by "discrepancy").
+        k_or_lam: the given k (TSVD) or lambda (Tikhonov) when `given`.
+        kind: "tsvd" or "tikhonov"; rule: "gcv" or "discrepancy".
+        per_channel: the residual in noise units needs the per-channel weights (non-uniform
+            noise and an unweighted SVD); else it is ||r|| w[0] (or ||r|| when weighted).
+    Returns:
+        image (n_params,), k or trace, lambda (NaN for TSVD), residual norm ||b - A x||.
+    """
+    m = b.shape[0]
+    r = dec.s.shape[0]
+    beta = dec.u.T @ b
+    perp2 = jnp.maximum(jnp.sum(b**2) - jnp.sum(beta**2), 0.0)
+    target = 1.05 * jnp.sqrt(m)  # Morozov's tau slightly above 1 (Hansen 1998, sec. 7.2)
+    if kind == "tsvd":
+        ks = jnp.arange(1, r + 1)
+        F = (jnp.arange(r)[None, :] < ks[:, None]).astype(b.dtype)  # (r, r): row k-1 keeps k
+    else:
+        lams = jnp.geomspace(dec.s[0] * 1e-8, dec.s[0] * 10, _N_LAMBDA)
+        F = dec.s**2 / (dec.s**2 + lams[:, None] ** 2)  # (n_lams, r)
+    r2 = (((1.0 - F) * beta) ** 2).sum(1) + perp2  # residual^2 of every candidate
+    if given:
+        if kind == "tsvd":
+            f = (jnp.arange(r) < k_or_lam).astype(b.dtype)
+            lam = jnp.nan
+        else:
+            lam = jnp.asarray(k_or_lam, b.dtype)
+            f = dec.s**2 / (dec.s**2 + lam**2)
+    else:
+        if rule == "gcv":
+            # G = ||r||^2 / (m - trace)^2 (Golub, Heath & Wahba 1979)
+            denom = (jnp.maximum(m - F.sum(1), 0.5)) ** 2
+            i = jnp.argmin(r2 / denom)
+        else:
+            if per_channel:  # ||W (A x - b)|| with A x = U (f beta) for every candidate
+                fits = dec.u @ (F * beta).T  # (n_rows, n_cand)
+                res = jnp.sqrt((((fits - b[:, None]) * w[:, None]) ** 2).sum(0))
+            else:
+                res = jnp.sqrt(r2) * w[0]
+            ok = res <= target
+            if kind == "tsvd":  # the smallest k that meets the noise level, else all
+                i = jnp.where(ok.any(), jnp.argmax(ok), r - 1)
+            else:  # the largest lambda that meets it, else the smallest lambda
+                i = jnp.where(ok.any(), F.shape[0] - 1 - jnp.argmax(ok[::-1]), 0)
+        f = F[i]
+        lam = jnp.nan if kind == "tsvd" else lams[i]
+    x, rr2, tr = _filtered(dec, beta, perp2, f)
+    return x, tr, lam, jnp.sqrt(rr2)
+
+
+def _setup(J, dv, method, noise_std, decomposition):
+    """Validate, weight and decompose; returns (dec, b, w, per_channel)."""
+    if not isinstance(method, (TSVD, Tikhonov)):
+        raise ValueError(f"`method` must be TSVD(...) or Tikhonov(...), got {method!r}.")
+    dv = jnp.asarray(dv, dtype=jnp.float64)
+    n_rows = (getattr(J, "shape", (None,))[0] if decomposition is None
+              else decomposition.u.shape[0])
+    if dv.ndim not in (1, 2) or dv.shape[-1] != n_rows:
+        raise ValueError(
+            f"`dv` has shape {dv.shape} but `J` has {n_rows} rows; pass one voltage change "
+            "per protocol row.")
+    if not bool(jnp.all(jnp.isfinite(dv))):
+        raise ValueError("`dv` contains NaN or Inf.")
+    w = _weights(dv, noise_std)
+    if method.rule == "discrepancy" and w is None and not _given(method):
+        raise ValueError("the discrepancy rule needs `noise_std` (per channel or scalar, in V).")
+    weighted = method.noise_weighted
+    if weighted and w is None:
+        raise ValueError(f"`{type(method).__name__}(noise_weighted=True)` needs `noise_std`.")
+    if decomposition is None:
+        if J is None:
+            raise ValueError("pass `J` or a precomputed `decomposition`.")
+        Jw = jnp.asarray(J, jnp.float64)
+        if Jw.ndim != 2:
+            raise ValueError(f"`J` must be 2D (n_rows, n_params), got shape {Jw.shape}.")
+        decomposition = svd(Jw * w[:, None] if weighted else Jw, normalise=method.normalise)
+    elif decomposition.normalised != method.normalise:
+        raise ValueError(
+            f"`decomposition` was made with normalise={decomposition.normalised} but the method "
+            f"has normalise={method.normalise}; pass svd(J, normalise={method.normalise}).")
+    b = dv * w if weighted else dv
+    per_channel = (w is not None and not weighted and not bool(jnp.all(w == w[0]))
+                   and method.rule == "discrepancy")
+    if w is None or weighted:
+        w = jnp.ones(dv.shape[-1])  # residuals are already in noise units (or unused)
+    return decomposition, b, w, per_channel
+
+
+def _given(method) -> bool:
+    return (method.k if isinstance(method, TSVD) else method.lam) is not None
+
+
+def _run(dec, b, w, method, per_channel):
+    kind = "tsvd" if isinstance(method, TSVD) else "tikhonov"
+    given = _given(method)
+    value = (min(method.k, dec.s.shape[0]) if kind == "tsvd" else method.lam) if given else 0.0
+    return _core(dec, b, w, value, kind=kind, rule=method.rule, given=given,
+                 per_channel=per_channel)
 
 
 def reconstruct(J, dv, method: TSVD | Tikhonov = TSVD(), *, noise_std=None,
@@ -130,91 +274,82 @@ def reconstruct(J, dv, method: TSVD | Tikhonov = TSVD(), *, noise_std=None,
             "gcv" minimises the generalised cross-validation function
             G = ||r||^2 / (n_rows - trace)^2 (Golub, Heath & Wahba 1979); "discrepancy" picks the
             strongest regularisation with ||W r|| <= 1.05 sqrt(n_rows) (Morozov 1966), which needs
-            `noise_std`.
+            `noise_std`. Tikhonov's lambda is searched on 200 log-spaced values from
+            1e-8 to 10 times the largest singular value.
         noise_std: per-channel (n_rows,) or scalar noise standard deviation (V). Used by the
-            discrepancy rule and, with `Tikhonov(noise_weighted=True)`, as row weights.
-        decomposition: a precomputed `svd(J)` to reuse across many reconstructions
-            (it must be of the (weighted) J the method uses).
+            discrepancy rule and, with `noise_weighted=True`, as row weights.
+        decomposition: a precomputed `svd(J, normalise=method.normalise)` to reuse across many
+            reconstructions (of W J when the method is noise-weighted); `J` may then be None.
 
     Returns:
         A `Reconstruction` with the image on the parameters of J.
     """
-    dv = jnp.asarray(dv, dtype=jnp.float64)
-    m = dv.shape[0] if dv.ndim == 1 else -1
-    if dv.ndim != 1 or J.shape[0] != m:
-        raise ValueError(
-            f"`dv` has shape {dv.shape} but `J` has {J.shape[0]} rows; pass one voltage change "
-            "per protocol row."
-        )
-    if not bool(jnp.all(jnp.isfinite(dv))):
-        raise ValueError("`dv` contains NaN or Inf.")
-    w = _weights(dv, noise_std)
-    rule = method.rule
-    if rule == "discrepancy" and w is None:
-        raise ValueError("the discrepancy rule needs `noise_std` (per channel or scalar, in V).")
-    weighted = isinstance(method, Tikhonov) and method.noise_weighted
-    if weighted and w is None:
-        raise ValueError("`Tikhonov(noise_weighted=True)` needs `noise_std`.")
-    b = dv * w if weighted else dv
-    if decomposition is None:
-        Jw = jnp.asarray(J, jnp.float64)
-        decomposition = svd(Jw * w[:, None] if weighted else Jw)
-    dec = decomposition
-    beta = dec.u.T @ b
-    perp2 = jnp.maximum(jnp.sum(b**2) - jnp.sum(beta**2), 0.0)
-    r = dec.s.shape[0]
-    target = 1.05 * np.sqrt(m)  # Morozov's tau slightly above 1 (Hansen 1998, sec. 7.2)
+    if jnp.ndim(dv) != 1:
+        raise ValueError(f"`dv` has shape {jnp.shape(dv)}; pass (n_rows,) (or use "
+                         "reconstruct_batch for many data vectors).")
+    dec, b, w, per_channel = _setup(J, dv, method, noise_std, decomposition)
+    x, k, lam, res = _run(dec, b, w, method, per_channel)
+    kind = "tsvd" if isinstance(method, TSVD) else "tikhonov"
+    return Reconstruction(x, kind, float(k), float(lam), float(res),
+                          "given" if _given(method) else method.rule)
 
-    def noise_units_residual(f):
-        """||W (J x_f - dv)||, the residual in units of the noise, for filter factors f."""
-        r2 = jnp.sum(((1.0 - f) * beta) ** 2) + perp2
-        if weighted:  # the SVD is of W J already
-            return float(jnp.sqrt(r2))
-        if bool(jnp.all(w == w[0])):  # uniform noise: a scalar factor
-            return float(jnp.sqrt(r2) * w[0])
-        x, _, _ = _filtered(dec, beta, perp2, f)
-        return float(jnp.linalg.norm(w * (jnp.asarray(J, jnp.float64) @ x - dv)))
 
-    if isinstance(method, TSVD):
-        ks = np.arange(1, r + 1)
-        if method.k is not None:
-            k, chosen = min(method.k, r), "given"
-        elif rule == "gcv":
-            tail = jnp.cumsum((beta**2)[::-1])[::-1]  # sum_{i >= k} beta_i^2
-            r2 = jnp.concatenate([tail[1:], jnp.zeros(1)]) + perp2
-            denom = jnp.maximum(m - ks, 0.5) ** 2
-            k, chosen = int(ks[int(jnp.argmin(r2 / denom))]), "gcv"
-        else:
-            k = r
-            for kk in ks:
-                if (noise_units_residual((jnp.arange(r) < kk).astype(jnp.float64))) <= target:
-                    k = int(kk)
-                    break
-            chosen = "discrepancy"
-        f = (jnp.arange(r) < k).astype(jnp.float64)
-        x, r2, tr = _filtered(dec, beta, perp2, f)
-        return Reconstruction(x, "tsvd", float(k), float("nan"), float(jnp.sqrt(r2)), chosen)
+def reconstruct_batch(J, dv, method: TSVD | Tikhonov = TSVD(), *, noise_std=None,
+                      decomposition: SVD | None = None) -> Reconstruction:
+    """`reconstruct` for many data vectors at once (`vmap` over the rows of `dv`).
 
-    s = dec.s
-    if method.lam is not None:
-        lam, chosen = float(method.lam), "given"
-    else:
-        lams = np.geomspace(float(s[0]) * 1e-8, float(s[0]) * 10, 200)
-        sn, bn = np.asarray(s), np.asarray(beta)
-        f_all = sn**2 / (sn**2 + lams[:, None] ** 2)  # (n_lams, r) filter factors
-        if rule == "gcv":
-            r2 = (((1.0 - f_all) * bn) ** 2).sum(1) + float(perp2)
-            lam = float(lams[int(np.argmin(r2 / (m - f_all.sum(1)) ** 2))])
-        else:
-            lam = float(lams[0])
-            for l, f in zip(lams[::-1], f_all[::-1]):  # strongest first
-                if noise_units_residual(jnp.asarray(f)) <= target:
-                    lam = float(l)
-                    break
-        chosen = rule
-    f = s**2 / (s**2 + lam**2)
-    x, r2, tr = _filtered(dec, beta, perp2, f)
-    return Reconstruction(x, "tikhonov", float(tr), lam, float(jnp.sqrt(r2)), chosen)
+    The SVD is computed once; each data vector gets its own k / lambda by the method's rule.
+    This is how noise-realisation studies run: one compiled call for the whole batch.
+
+    Arguments:
+        J, method, noise_std, decomposition: as `reconstruct` (noise_std shared by the batch).
+        dv: (n_batch, n_rows) voltage changes (V).
+
+    Returns:
+        A `Reconstruction` whose image is (n_batch, n_params) and whose k, lam and
+        residual_norm are (n_batch,) arrays.
+    """
+    if jnp.ndim(dv) != 2:
+        raise ValueError(f"`dv` has shape {jnp.shape(dv)}; pass (n_batch, n_rows).")
+    dec, b, w, per_channel = _setup(J, dv, method, noise_std, decomposition)
+    x, k, lam, res = jax.vmap(lambda bb: _run(dec, bb, w, method, per_channel))(b)
+    kind = "tsvd" if isinstance(method, TSVD) else "tikhonov"
+    return Reconstruction(x, kind, k, lam, res, "given" if _given(method) else method.rule)
+
+
+def simulate_difference(model, sigma_ref, sigma_pert, protocol, *, noise_percent: float = 0.0,
+                        seed: int = 0):
+    """Difference data of a conductivity change, optionally with noise per channel.
+
+    To avoid the inverse crime (Kaipio & Somersalo 2005, sec. 1.2: data simulated with the very
+    model that inverts them hide the modelling error), simulate on a finer mesh than the
+    reconstruction mesh: place electrodes at the same positions with the same radius on both
+    meshes, perturb the fine mesh's conductivity (e.g. `spherical_perturbation(fine_mesh, ...)`),
+    call this with the fine model, and reconstruct with the coarse model's Jacobian. The data
+    vector lines up with the coarse model's rows because both use the same `protocol`.
+
+    Arguments:
+        model: the ForwardModel that simulates the data (the fine one).
+        sigma_ref, sigma_pert: (4,) or (n_tets,) conductivities of the model in S/m, before
+            and after the change.
+        protocol: the Protocol (same electrode order as the reconstruction model).
+        noise_percent: Gaussian noise in % of each channel's baseline voltage (the seed paper's
+            0.5 %), added to the difference (`add_noise(dv, noise_percent, reference=v_ref)`).
+        seed: noise seed.
+
+    Returns:
+        dv: (n_rows,) voltage change in V (noisy when noise_percent > 0); v_ref: (n_rows,)
+        baseline voltages in V (noise-free; `noise_std(v_ref, noise_percent)` is the noise level).
+    """
+    from .fem import simulate
+
+    if noise_percent < 0:
+        raise ValueError(f"`noise_percent` must be >= 0, got {noise_percent}.")
+    v_ref = np.asarray(simulate(model, sigma_ref, protocol))
+    dv = np.asarray(simulate(model, sigma_pert, protocol)) - v_ref
+    if noise_percent > 0:
+        dv = add_noise(dv, noise_percent, seed=seed, reference=v_ref)
+    return dv, v_ref
 
 
 # --- simulation helpers -------------------------------------------------------------------------
@@ -287,9 +422,27 @@ def add_noise(v, percent: float, *, seed: int = 0, reference=None) -> np.ndarray
     return v + np.random.default_rng(seed).standard_normal(v.shape) * std
 
 
-def noise_std(reference, percent: float) -> np.ndarray:
-    """Per-channel noise standard deviation: percent / 100 * |reference|."""
-    return np.abs(np.asarray(reference, dtype=np.float64)) * (percent / 100.0)
+def noise_std(reference, percent: float, *, floor: float = 0.0) -> np.ndarray:
+    """Per-channel noise standard deviation: percent / 100 * max(|reference|, floor * RMS).
+
+    Arguments:
+        reference: (n_rows,) voltages the percentage refers to (V).
+        percent: noise in % per channel.
+        floor: as a fraction of the RMS of `reference`, the smallest magnitude a channel's
+            noise refers to. 0 (default) is the pure per-channel model `add_noise` draws from.
+            For weights in a reconstruction a small floor (e.g. 0.03) keeps channels whose
+            standing voltage is nearly zero from being trusted beyond the model's accuracy:
+            whitening would otherwise amplify the reconstruction mesh's modelling error there.
+
+    Returns:
+        (n_rows,) standard deviations in V.
+    """
+    ref = np.abs(np.asarray(reference, dtype=np.float64))
+    if not floor >= 0:
+        raise ValueError(f"`floor` must be >= 0 (a fraction of the RMS), got {floor}.")
+    if floor > 0:
+        ref = np.maximum(ref, floor * np.sqrt(np.mean(ref**2)))
+    return ref * (percent / 100.0)
 
 
 # --- reconstruction grids -----------------------------------------------------------------------

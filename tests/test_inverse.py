@@ -13,7 +13,9 @@ from jaxhead.inverse import (
     image_metrics,
     jacobian_to_grid,
     make_grid,
+    noise_std,
     reconstruct,
+    reconstruct_batch,
     spherical_perturbation,
     svd,
 )
@@ -176,3 +178,80 @@ def test_noise_statistics():
     rel_std = samples.std(0) / (0.005 * v)
     assert abs(rel_std.mean() - 1) < 0.03  # 2000 samples: std of the std estimate ~1.6 %
     np.testing.assert_array_equal(add_noise(v, 0.5, seed=3), add_noise(v, 0.5, seed=3))
+
+
+@pytest.mark.parametrize("method", [TSVD(), Tikhonov(rule="discrepancy"),
+                                    Tikhonov(noise_weighted=True)])
+def test_batch_equals_loop(method):
+    J, x_true, b = blur_problem()
+    rng = np.random.default_rng(6)
+    # Non-uniform noise: the discrepancy rule then needs per-channel residuals.
+    std = 1e-3 * np.abs(b).max() * rng.uniform(0.5, 2.0, b.size)
+    B = b + std * rng.standard_normal((5, b.size))
+    batch = reconstruct_batch(J, B, method, noise_std=std)
+    assert batch.image.shape == (5, J.shape[1]) and batch.k.shape == (5,)
+    for i in range(5):
+        one = reconstruct(J, B[i], method, noise_std=std)
+        np.testing.assert_allclose(np.asarray(batch.image[i]), np.asarray(one.image), rtol=1e-10,
+                                   atol=1e-12 * np.abs(np.asarray(one.image)).max())
+        assert float(batch.k[i]) == pytest.approx(one.k, rel=1e-12)
+        assert float(batch.residual_norm[i]) == pytest.approx(one.residual_norm, rel=1e-9)
+
+
+def test_discrepancy_with_per_channel_noise():
+    # Per-channel residual ||W r|| is computed from the SVD; check it against a dense product.
+    J, x_true, b = blur_problem()
+    rng = np.random.default_rng(7)
+    std = 1e-3 * np.abs(b).max() * rng.uniform(0.3, 3.0, b.size)
+    bn = b + std * rng.standard_normal(b.size)
+    target = 1.05 * np.sqrt(b.size)
+    rec = reconstruct(J, bn, TSVD(rule="discrepancy"), noise_std=std)
+    assert np.linalg.norm((J @ np.asarray(rec.image) - bn) / std) <= target
+    prev = reconstruct(J, bn, TSVD(int(rec.k) - 1))
+    assert np.linalg.norm((J @ np.asarray(prev.image) - bn) / std) > target
+
+
+def test_reconstruct_batch_errors():
+    J = np.ones((4, 3))
+    with pytest.raises(ValueError, match="n_batch, n_rows"):
+        reconstruct_batch(J, np.ones(4))
+    with pytest.raises(ValueError, match="one voltage change per protocol row"):
+        reconstruct_batch(J, np.ones((2, 5)))
+    with pytest.raises(ValueError, match="reconstruct_batch"):
+        reconstruct(J, np.ones((2, 4)))
+    with pytest.raises(ValueError, match="TSVD"):
+        reconstruct(J, np.ones(4), "tsvd")
+
+
+def test_normalised_and_weighted_methods_match_dense_formulas():
+    rng = np.random.default_rng(8)
+    J = rng.standard_normal((25, 40)) * np.geomspace(1, 1e-2, 40)  # columns of unequal norm
+    b = rng.standard_normal(25)
+    std = rng.uniform(0.5, 2.0, 25)
+    W = np.diag(1 / std)
+    D = np.diag(np.linalg.norm(W @ J, axis=0))
+    lam = 0.4
+    # NOSER-type prior: (J^T W^2 J + lam^2 D^2) x = J^T W^2 b (Cheney et al. 1990).
+    x_ref = np.linalg.solve(J.T @ W @ W @ J + lam**2 * D @ D, J.T @ W @ W @ b)
+    rec = reconstruct(J, b, Tikhonov(lam, noise_weighted=True, normalise=True), noise_std=std)
+    np.testing.assert_allclose(np.asarray(rec.image), x_ref, rtol=1e-8)
+    # TSVD of W J D^-1 applied to W b, mapped back by D^-1.
+    k = 6
+    u, s, vt = np.linalg.svd(W @ J @ np.linalg.inv(D), full_matrices=False)
+    y = vt[:k].T @ ((u[:, :k].T @ (W @ b)) / s[:k])
+    rec = reconstruct(J, b, TSVD(k, noise_weighted=True, normalise=True), noise_std=std)
+    np.testing.assert_allclose(np.asarray(rec.image), np.linalg.solve(D, y), rtol=1e-8)
+    with pytest.raises(ValueError, match="normalise"):
+        reconstruct(J, b, TSVD(k, normalise=True), decomposition=svd(J))
+    with pytest.raises(ValueError, match="needs `noise_std`"):
+        reconstruct(J, b, TSVD(k, noise_weighted=True))
+
+
+def test_noise_std_floor():
+    v = np.array([1.0, -0.5, 1e-6, 0.0])
+    np.testing.assert_allclose(noise_std(v, 0.5), 0.005 * np.abs(v))
+    rms = np.sqrt(np.mean(v**2))
+    np.testing.assert_allclose(noise_std(v, 0.5, floor=0.1),
+                               0.005 * np.maximum(np.abs(v), 0.1 * rms))
+    with pytest.raises(ValueError, match="floor"):
+        noise_std(v, 0.5, floor=-1)
