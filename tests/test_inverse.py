@@ -31,13 +31,18 @@ def blur_problem(m=60, n=80, width=0.08, seed=0):
     return J, x_true, b
 
 
-def test_svd_paths_agree():
+@pytest.mark.parametrize("shape", [(20, 200), (200, 20), (60, 50)])
+def test_svd_paths_agree(shape):
     rng = np.random.default_rng(1)
-    J = rng.standard_normal((20, 200)) @ np.diag(np.geomspace(1, 1e-3, 200))
-    d = svd(J)  # wide: Gram path
+    J = rng.standard_normal(shape) @ np.diag(np.geomspace(1, 1e-3, shape[1]))
     s_ref = np.linalg.svd(J, compute_uv=False)
-    np.testing.assert_allclose(np.asarray(d.s), s_ref[: d.s.shape[0]], rtol=1e-9)
-    np.testing.assert_allclose(np.asarray(d.u * d.s) @ np.asarray(d.vt), J, atol=1e-12)
+    for gram in (True, False):
+        d = svd(J, gram=gram)
+        # Singular values >= 1e-3 s_max: the Gram route's relative error is ~eps (s_max/s)^2
+        # <= 1e-10 (Golub & Van Loan 2013, sec. 8.6), so 1e-9 holds for both routes.
+        np.testing.assert_allclose(np.asarray(d.s), s_ref[: d.s.shape[0]], rtol=1e-9)
+        np.testing.assert_allclose(np.asarray(d.u * d.s) @ np.asarray(d.vt), J, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(d.u.T @ d.u), np.eye(d.s.shape[0]), atol=1e-9)
 
 
 @pytest.mark.parametrize("shape", [(40, 30), (30, 400)])
