@@ -119,8 +119,8 @@ def test_bad_inputs(atlas_mri):
 
 def test_segment_config_per_tissue_gaussians():
     cfg = SegmentConfig(modality="ct", gaussians={"csf": 3, Tissue.SKULL: 1})
-    assert cfg.gaussians_per_class() == (1, 1, 3, 1, 2)
+    assert cfg.gaussians_per_class() == (2, 1, 3, 1, 3)  # unnamed classes keep the CT defaults
     opts = cfg.em_options(1.0)
-    assert opts.component_class == (0, 1, 2, 2, 2, 3, 4, 4) and opts.bias_degree == 0
+    assert opts.component_class == (0, 0, 1, 2, 2, 2, 3, 4, 4, 4) and opts.bias_degree == 0
     assert SegmentConfig(modality="mri").em_options(1.0).bias_degree == 4
     assert dataclasses.replace(cfg, beta=0.0).beta == 0.0

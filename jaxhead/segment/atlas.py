@@ -29,7 +29,7 @@ import numpy as np
 
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, _check_affine
-from .register import AffineTransform, RegisterConfig, affine_register, resample
+from .register import RegisterConfig, register, resample
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +158,8 @@ def build_atlas(
         reference: Volume defining the atlas grid (voxel size, extent, affine) and the first round's
             registration target (e.g. one of the examples).
         modality: "mri" or "ct" (MRI intensities are normalised to brain median = 1).
-        cfg: RegisterConfig of the affine stage (default: NMI, 8 and 4 mm levels; `bspline` is ignored).
+        cfg: RegisterConfig (default: affine only, NMI, 8 and 4 mm levels). With `bspline` on, the
+            examples are also aligned non-linearly (sharper priors, less of the population's spread).
         rounds: 1 registers to `reference`; each further round registers to the previous mean template.
     Returns:
         Atlas on the reference grid.
@@ -192,7 +193,7 @@ def build_atlas(
         template = np.zeros(reference.shape)
         priors = np.zeros((N_CLASSES, *reference.shape), np.float32)
         for i, (v, lab, data) in enumerate(zip(volumes, label_maps, normed)):
-            t: AffineTransform = affine_register(target, Volume(data, v.affine), cfg)
+            t = register(target, Volume(data, v.affine), cfg)
             template += np.asarray(resample(data, v.affine, t, reference.shape, reference.affine))
             priors += np.asarray(resample(_one_hot(lab.labels), v.affine, t, reference.shape, reference.affine),
                                  dtype=np.float32)

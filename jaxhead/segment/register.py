@@ -56,7 +56,7 @@ class RegisterConfig:
         similarity: "nmi" (normalised mutual information, any modality pair) or "ncc" (normalised
             cross correlation, same modality).
         affine_resolutions_mm: pyramid levels of the affine stage, coarse to fine, as voxel sizes in
-            mm (each image is block-averaged by the power-of-2 factor closest to it).
+            mm (each image is block-averaged by the integer factor closest to level / voxel size).
         bspline: run the non-linear cubic B-spline stage after the affine one.
         bspline_resolutions_mm: pyramid levels of the B-spline stage, coarse to fine.
         control_spacing_mm: B-spline control-point spacing in mm.
@@ -87,8 +87,15 @@ class RegisterConfig:
             raise ValueError(f"[register] `similarity` must be 'nmi' or 'ncc', got {self.similarity!r}.")
         for name in ("affine_resolutions_mm", "bspline_resolutions_mm"):
             val = getattr(self, name)
-            if not isinstance(val, tuple) or not all(float(v) > 0 for v in val):
-                raise ValueError(f"[register] `{name}` must be a tuple of positive mm values, got {val!r}.")
+            try:
+                val = tuple(float(v) for v in val)
+            except (TypeError, ValueError):
+                val = None
+            if val is None or not all(v > 0 for v in val):
+                raise ValueError(
+                    f"[register] `{name}` must be a sequence of positive mm values, got {getattr(self, name)!r}."
+                )
+            object.__setattr__(self, name, val)  # TOML gives lists: store a (hashable) tuple
         if not self.affine_resolutions_mm:
             raise ValueError("[register] `affine_resolutions_mm` is empty; give at least one level, e.g. (8.0, 4.0).")
         if self.bspline and not self.bspline_resolutions_mm:

@@ -40,15 +40,18 @@ from .register import RegisterConfig, Transform, register, resample
 
 log = logging.getLogger(__name__)
 
-#: Gaussians per class by default (BACKGROUND, BRAIN, CSF, SKULL, SCALP), from the tissues' make-up
-#: plus one for the partial-volume tail of a thin layer next to a very different one (CSF is 1-5 mm
-#: between brain and bone; without its own Gaussian that tail drags the CSF Gaussian away from CSF):
+#: Gaussians per class by default (BACKGROUND, BRAIN, CSF, SKULL, SCALP): one per tissue the class
+#: is made of, plus one for a partial-volume tail where a thin layer borders a very different one
+#: (without a home of their own, those voxels drag the nearest broad Gaussian off its tissue: CT CSF,
+#: 1-5 mm between brain at 30 HU and bone at 1000+ HU, loses its Gaussian to the bone tail, and the
+#: air/skin boundary voxels at ~-500 HU pull whichever Gaussian is widest):
 #: MRI: air (Rician noise floor, skewed in log) 2; brain grey + white 2; CSF pure + partial volume 2;
 #: skull compact tables (dark) + diploe (fatty marrow, bright) + partial volume 3; scalp skin/muscle +
-#: fat + partial volume 3.
-#: CT: air 1; brain grey/white (HU 30-40, one blurred peak) 1; CSF pure + partial volume with bone 2;
-#: skull cortical + diploe 2; scalp fat (-90 HU) + skin/muscle (+40 HU) 2.
-DEFAULT_GAUSSIANS = {"mri": (2, 2, 2, 3, 3), "ct": (1, 1, 2, 2, 2)}
+#: fat + partial volume with air 3.
+#: CT: air + partial volume 2; brain grey/white (30-40 HU, one blurred peak) 1; CSF pure + partial
+#: volume with bone 2; skull cortical + diploe 2; scalp fat (-90 HU) + skin/muscle (+40 HU) + partial
+#: volume with air 3.
+DEFAULT_GAUSSIANS = {"mri": (2, 2, 2, 3, 3), "ct": (2, 1, 2, 2, 3)}
 #: Bias-field polynomial degree by default (MRI: Van Leemput et al. 1999 used 4th order; CT: none).
 DEFAULT_BIAS_DEGREE = {"mri": 4, "ct": 0}
 
