@@ -33,8 +33,9 @@ def _is_tracer(x) -> bool:
 class ForwardModel(eqx.Module):
     """A mesh, its electrodes and everything about the FEM system that does not depend on values.
 
-    Build with `build_forward_model`; edit with `eqx.tree_at`. Array fields are NumPy on the host
-    and become traced arrays when the model is an argument of `eqx.filter_jit`.
+    Build with `build_forward_model`; edit with `eqx.tree_at`. Array fields are JAX arrays (a
+    jax stage); pass the model as an argument of `eqx.filter_jit` / `jax.jit` rather than
+    closing over it, or its arrays become compile-time constants (slow to compile).
 
     Attributes:
         nodes: (n_nodes, 3) node positions in mm (the default geometry).
@@ -57,11 +58,11 @@ class ForwardModel(eqx.Module):
     """
 
     nodes: jax.Array
-    tets: np.ndarray
-    labels: np.ndarray
-    faces: np.ndarray
-    face_electrode: np.ndarray
-    free_faces: np.ndarray
+    tets: jax.Array
+    labels: jax.Array
+    faces: jax.Array
+    face_electrode: jax.Array
+    free_faces: jax.Array
     contact_impedance: jax.Array
     order: jax.Array
     targets: jax.Array

@@ -538,19 +538,19 @@ class _Coarsening(eqx.Module):
     p_ell: Ell
     pt_ell: Ell
     a_diag: jax.Array
-    p_rows: np.ndarray
-    p_cols: np.ndarray
-    pt_target: np.ndarray
-    pa_target: np.ndarray
-    ap_a: np.ndarray
-    ap_p: np.ndarray
-    ap_target: np.ndarray
-    b_rows: np.ndarray
-    pb_p: np.ndarray
-    pb_b: np.ndarray
-    pb_target: np.ndarray
-    c_rows: np.ndarray
-    c_cols: np.ndarray
+    p_rows: jax.Array
+    p_cols: jax.Array
+    pt_target: jax.Array
+    pa_target: jax.Array
+    ap_a: jax.Array
+    ap_p: jax.Array
+    ap_target: jax.Array
+    b_rows: jax.Array
+    pb_p: jax.Array
+    pb_b: jax.Array
+    pb_target: jax.Array
+    c_rows: jax.Array
+    c_cols: jax.Array
     n_fine: int = eqx.field(static=True)
     n_coarse: int = eqx.field(static=True)
     nnz_p: int = eqx.field(static=True)
