@@ -12,7 +12,7 @@ realisations are fitted in one vmapped solve by `fit_conductivities_batch`.
 """
 
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import equinox as eqx
 import jax
@@ -74,6 +74,29 @@ class FitResult(eqx.Module):
         lines.append(f"residual norm {self.residual_norm:.4g}, {self.n_steps} steps, "
                      f"{self.n_forward} forward solves, cond(J^T J) {self.condition:.3g}")
         return "\n".join(lines)
+
+
+class LineSearchGaussNewton(optx.AbstractGaussNewton):
+    """Gauss-Newton directions with a backtracking Armijo line search (an optimistix solver).
+
+    Each step solves the linearised least-squares problem exactly (lineax QR), then halves the
+    step until the loss decreases enough (Armijo). On the four-tissue fits of
+    benchmarks/fit.py it converges in 11-16 steps and 14-24 forward solves where
+    `optx.LevenbergMarquardt` takes 23-37 steps and 54-81 solves, to the same estimates: for
+    small-residual problems with a full-rank Jacobian the Gauss-Newton step is nearly the Newton
+    step (Nocedal & Wright 2006, sec. 10.3). Prefer Levenberg-Marquardt (the default) when the
+    Jacobian may be rank-deficient (a tissue the data do not see).
+
+    Arguments:
+        rtol, atol: optimistix's Cauchy termination tolerances.
+    """
+
+    rtol: float
+    atol: float
+    norm: Callable = optx.max_norm
+    descent: optx.NewtonDescent = optx.NewtonDescent()
+    search: optx.BacktrackingArmijo = optx.BacktrackingArmijo()
+    verbose: Callable = eqx.field(static=True, default=lambda **kwargs: None)
 
 
 def _names(fit) -> tuple[str, ...]:
