@@ -212,17 +212,30 @@ def _forward_model(cfg: RunConfig, subject: Subject):
 
 
 def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
-    """Reconstruct a simulated brain perturbation (TSVD/Tikhonov) and fit tissue conductivities."""
+    """Reconstruct a simulated brain perturbation (TSVD/Tikhonov) and fit tissue conductivities.
+
+    The Jacobian is summed straight into the reconstruction grid's brain cells tile by tile
+    (`jacobian_grid`: no n_rows x n_tets matrix), the reconstruction is whitened by the noise
+    level and column-normalised (tests/test_inverse_recovery.py), and the fit uses Gauss-Newton
+    with a line search (`LineSearchGaussNewton`: about a third of Levenberg-Marquardt's forward
+    solves). Data come from the same mesh (no finer mesh exists in a pipeline run), so both
+    results are optimistic about modelling error; see tests/test_inverse_recovery.py and the
+    slow head tests for data from a different mesh.
+    """
+    import time
+
     import numpy as np
 
-    from .fem import jacobian, simulate
-    from .fit import fit_conductivities
+    from .fem import simulate
+    from .fit import LineSearchGaussNewton, fit_conductivities
     from .inverse import (TSVD, Tikhonov, add_noise, grid_to_tets, image_metrics,
-                          jacobian_to_grid, make_grid, noise_std, reconstruct,
+                          jacobian_grid, make_grid, noise_std, reconstruct,
                           spherical_perturbation)
     from .plot import plot_image_cut
 
     c = cfg.inverse
+    seconds = {}
+    t0 = time.perf_counter()
     mesh, electrodes, protocol, model = _forward_model(cfg, subject)
     sigma = cfg.forward.sigma()
     sigma_tet = sigma[mesh.labels - 1]
@@ -233,20 +246,31 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
         centre = middle + 0.4 * np.array([0.0, 0.0, cen[:, 2].max() - middle[2]])
     else:
         centre = np.asarray(c.centre_mm, dtype=float)
-    v0 = np.asarray(simulate(model, sigma, protocol))
+    seconds["model"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    grid = make_grid(mesh, c.cell_mm, tissues=["brain"])
+    Jg, v0 = jacobian_grid(model, sigma, protocol, grid, return_volts=True)
+    seconds["jacobian_grid"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     pert = spherical_perturbation(mesh, sigma_tet, centre, c.radius_mm, c.rel_change, tissue="brain")
     dv = np.asarray(simulate(model, pert, protocol)) - v0
     # Noise on each channel, relative to the baseline voltage (the seed paper's model).
     dv_noisy = add_noise(dv, c.noise_percent, seed=c.seed, reference=v0)
-    J = np.asarray(jacobian(model, sigma, protocol))
-    grid = make_grid(mesh, c.cell_mm, tissues=["brain"])
-    Jg = jacobian_to_grid(J, grid)
-    method = TSVD() if c.method == "tsvd" else Tikhonov()
-    std = noise_std(v0, c.noise_percent) if c.noise_percent > 0 else None
-    rec = reconstruct(Jg, dv_noisy, method)
+    seconds["simulate"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    kind = TSVD if c.method == "tsvd" else Tikhonov
+    if c.noise_percent > 0:
+        # Whitened by the noise level (floored at 3 % of the RMS standing voltage, so that
+        # near-zero channels are not trusted beyond the model's accuracy) and NOSER-normalised.
+        std = noise_std(v0, c.noise_percent, floor=0.03)
+        rec = reconstruct(Jg, dv_noisy, kind(noise_weighted=True, normalise=True), noise_std=std)
+    else:
+        std = None
+        rec = reconstruct(Jg, dv_noisy, kind(normalise=True))
     x = np.asarray(rec.image)
     m = image_metrics(x, grid.centres, grid.volumes, centre, c.radius_mm,
                       sign=1 if c.rel_change > 0 else -1)
+    seconds["reconstruct"] = time.perf_counter() - t0
     out = subject.dir("inverse")
     plot_image_cut(mesh, grid_to_tets(x, grid), out / "reconstruction.png", centre_mm=centre,
                    radius_mm=c.radius_mm, label="conductivity change (S/m)",
@@ -257,14 +281,20 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
                "localisation_error_mm": m.localisation_error_mm, "diameter_mm": m.diameter_mm,
                "volume_ratio": m.volume_ratio, "n_cells": grid.n_cells}
     if c.fit:
+        t0 = time.perf_counter()
         measured = add_noise(v0, c.noise_percent, seed=c.seed + 1)
+        fit_std = noise_std(v0, c.noise_percent) if c.noise_percent > 0 else None
         res = fit_conductivities(model, protocol, measured, init=np.asarray(c.fit_init_s_m),
-                                 noise_std=std if std is not None else None)
+                                 noise_std=fit_std,
+                                 solver=LineSearchGaussNewton(rtol=1e-6, atol=1e-6))
         table = res.table() + "\n\ntrue (S/m): " + ", ".join(f"{v:g}" for v in sigma) + "\n"
         _write_text(out / "fit.txt", table)
         summary["fit_sigma"] = res.sigma.tolist()
         summary["fit_rel_error"] = (res.sigma / sigma - 1).tolist()
         summary["fit_n_forward"] = res.n_forward
+        summary["fit_n_steps"] = res.n_steps
+        seconds["fit"] = time.perf_counter() - t0
+    summary["seconds"] = seconds
     return summary
 
 

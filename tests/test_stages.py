@@ -23,7 +23,7 @@ def test_forward_and_inverse_stages(tmp_path):
         protocol=ProtocolConfig(kind="opposite"),
         forward=ForwardConfig(sigma_s_m={"skull": 0.02}),
         inverse=InverseConfig(centre_mm=(0.0, 20.0, 30.0), radius_mm=20.0, cell_mm=15.0,
-                              fit=False),
+                              fit=True),
     )
     res = run_pipeline(cfg, progress=lambda s: None)
     out = tmp_path / "run/mri"
@@ -43,3 +43,7 @@ def test_forward_and_inverse_stages(tmp_path):
     # measured a blob inside the head (radius 96 mm).
     assert 0 <= inv["localisation_error_mm"] < 96 and inv["n_cells"] > 10, inv
     assert (out / "inverse/reconstruction.png").exists()
+    # The fit ran to convergence (its accuracy: tests/test_fit.py) and reported its cost.
+    assert (out / "inverse/fit.txt").exists() and inv["fit_n_forward"] >= 2, inv
+    assert np.all(np.isfinite(inv["fit_rel_error"])) and set(inv["seconds"]) >= {
+        "jacobian_grid", "reconstruct", "fit"}, inv
