@@ -144,7 +144,9 @@ def test_potentials_match_simulate(model, protocol):
 def test_jit_equals_eager_and_traced_protocol(model, protocol):
     v = simulate(model, SIGMA, protocol)
     f = eqx.filter_jit(lambda m, s: simulate(m, s, protocol))
-    np.testing.assert_array_equal(np.asarray(f(model, jnp.asarray(SIGMA))), np.asarray(v))
+    # float64 round-off only (GPU scatter-adds sum in a different order under jit)
+    np.testing.assert_allclose(np.asarray(f(model, jnp.asarray(SIGMA))), np.asarray(v),
+                               rtol=1e-12, atol=1e-18)
     # rows traced: the electrode-basis path, same voltages
     g = eqx.filter_jit(simulate)
     np.testing.assert_allclose(np.asarray(g(model, jnp.asarray(SIGMA), protocol)),

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import os
 import threading
 import weakref
 from typing import Literal
@@ -474,6 +475,14 @@ class Direct(AbstractSolver):
             raise ValueError(f"`Direct.threads` must be >= 1 or None, got {self.threads}.")
 
     def init(self, pattern: Pattern, values: np.ndarray | None = None) -> DirectState:
+        try:  # the factorisation runs on the host through jax.pure_callback
+            jax.devices("cpu")
+        except RuntimeError as e:
+            raise ValueError(
+                "Direct() solves on the host through jax.pure_callback, which needs JAX's CPU "
+                f"platform, but JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS')!r} leaves it "
+                "out: add it (e.g. JAX_PLATFORMS=cuda,cpu) or use BlockCG() on the "
+                "accelerator.") from e
         name = self.backend
         if name == "auto":
             name = "pardiso" if pardiso_available() else "scipy"
