@@ -157,14 +157,14 @@ class TetMesh(eqx.Module):
 # ---------------------------------------------------------------------------------------------
 # tetrahedralize: nested surfaces -> labelled tetrahedral mesh (fTetWild, then improvement)
 
-#: Default target tet edge per tissue (mm). Thin shells get edges about their thickness (CSF
-#: ~1.5-3 mm, skull 4-7 mm, scalp 5-7 mm) so that the shells are several tets thick where it
-#: matters; the brain, the largest and least sensitive compartment for scalp EIT, is coarser.
-#: Matches the surfaces' defaults (``SurfaceConfig.edge_mm``) at the interfaces.
-#: Measured on the 1 mm MRI phantom with default surfaces (127k surface triangles): 2.13M tets,
-#: far above the seed paper's ~300k. The count follows the surfaces (~17 tets per surface
-#: triangle here), so a ~300k mesh needs coarser surfaces as well as coarser edges here.
-DEFAULT_EDGE_MM = {"brain": 4.0, "csf": 2.0, "skull": 2.5, "scalp": 3.0}
+#: Default target tet edge per tissue (mm). Each shell gets the edge of its surfaces
+#: (``SurfaceConfig.edge_mm``: about the shell's thickness, CSF 4, skull 4.5, scalp 6 mm), so a
+#: shell is one to two tets thick; the brain, the largest compartment and the one scalp EIT is
+#: least sensitive to, grades from its 6 mm surface to 10 mm inside. The element budget is the
+#: seed paper's (~300k tets for an adult head, Vonach et al. 2012 Table 2). The tet count follows
+#: the surfaces more than these edges (fTetWild keeps every surface triangle): finer surfaces
+#: (the former 3/2/2.5/3 mm) gave 2.13M tets on the 1 mm MRI phantom.
+DEFAULT_EDGE_MM = {"brain": 10.0, "csf": 4.0, "skull": 4.5, "scalp": 6.0}
 
 
 def _per_tissue_mm(value, name: str) -> dict[Tissue, float]:
@@ -223,7 +223,9 @@ class MeshConfig:
         improve: volume-mesh improvement after fTetWild: "relocate" (smart smoothing of
             interior and interface nodes on the worst tets, interfaces kept on their surfaces,
             see ``jaxhead._meshimprove``) or "none".
-        improve_iterations: rounds of improvement.
+        improve_iterations: at most this many rounds of improvement (each round moves the
+            nodes of the tets still below the target; it stops earlier when none is left or no
+            node moved). Rounds are cheap (only poor tets), so the cap is generous.
         threads: fTetWild threads (0: all cores).
     """
 
@@ -237,7 +239,7 @@ class MeshConfig:
     stop_energy: float = 30.0
     max_opt_iterations: int = 20
     improve: Literal["relocate", "none"] = "relocate"
-    improve_iterations: int = 10
+    improve_iterations: int = 30
     threads: int = 0
 
     def __post_init__(self):

@@ -27,10 +27,13 @@ head), the seed paper's marching cubes + MeshLab steps (Vonach et al. 2012) done
 Edge lengths (``edge_mm``). A shell of thickness t meshed from surfaces with edges h >> t gets
 flat tets (poor scaled Jacobian) unless the tetrahedraliser refines, and the field in a thin,
 high-contrast shell (CSF at 1.79 S/m shunting current past the 0.018 S/m skull) is what EIT is
-most sensitive to. So each surface's edge is about the thickness of the thinnest shell it bounds:
-CSF (the subarachnoid CSF layer is ~1.5-3 mm thick) 2 mm; SKULL (outer table; skull 4-7 mm, inner
-side already 2 mm) 2.5 mm; BRAIN (inner side of the CSF) and SCALP (scalp 5-7 mm, electrodes
-~10 mm across) 3 mm. The seed paper's adaptive meshing makes the same choice (finer thin layers).
+most sensitive to. So each surface's edge is about the thickness of the shell it bounds, giving
+one to two tets across each shell (fTetWild refines locally where a shell is thinner, to keep its
+AMIPS energy bounded): CSF 4 mm (subarachnoid plus sulcal CSF ~2-4 mm), SKULL 4.5 mm (skull
+4-7 mm), SCALP 6 mm (scalp 5-7 mm; electrodes ~10 mm across), and BRAIN 6 mm (the inner side of
+the CSF; scalp EIT's sensitivity falls off inward). This is the seed paper's adaptive meshing
+(finer thin layers) at its element budget: about 300k tets for an adult head (Vonach et al. 2012,
+Table 2), not more surface detail than the 1 mm voxels carry.
 """
 
 import logging
@@ -89,7 +92,7 @@ class Surface(eqx.Module):
 # ---------------------------------------------------------------------------------------------
 # Configuration and report
 
-_DEFAULT_EDGE_MM = {"brain": 3.0, "csf": 2.0, "skull": 2.5, "scalp": 3.0}
+_DEFAULT_EDGE_MM = {"brain": 6.0, "csf": 4.0, "skull": 4.5, "scalp": 6.0}
 
 
 def _per_tissue(value, name: str) -> dict[Tissue, float]:
