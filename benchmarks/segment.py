@@ -28,11 +28,20 @@ from jaxhead.segment.segment import _em_data  # noqa: E402
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
 
-def _timed(f, *a):
-    t = time.perf_counter()
+CPU = {}  # stage -> CPU seconds (time.process_time, all threads of this process)
+
+
+def _timed(f, *a, key=None):
+    t, c = time.perf_counter(), time.process_time()
     out = f(*a)
     jax.block_until_ready(jax.tree.leaves(out))
+    if key is not None:
+        CPU[key] = time.process_time() - c
     return out, time.perf_counter() - t
+
+
+def _load():
+    return "load average " + ", ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 def numpy_em_iteration(y, prior, post_prev, mu, var, w, cc, beta):
@@ -75,18 +84,20 @@ def main():
     print(f"default atlas {atlas.shape} ({atlas.n_subjects} subjects): {time.perf_counter() - t:.1f} s (cached after the first use)")
     cfg = SegmentConfig(modality=args.modality)
 
-    (tr, priors), t_reg1 = _timed(register_atlas, vol, atlas, cfg)
-    (tr, priors), t_reg2 = _timed(register_atlas, vol, atlas, cfg)
+    print(_load())
+    (tr, priors), t_reg1 = _timed(register_atlas, vol, atlas, cfg, key="reg1")
+    (tr, priors), t_reg2 = _timed(register_atlas, vol, atlas, cfg, key="reg2")
     print(f"registration (affine {cfg.register.affine_resolutions_mm} mm + B-spline "
           f"{cfg.register.bspline_resolutions_mm} mm, resampling priors): first call {t_reg1:.1f} s, "
-          f"after compile {t_reg2:.1f} s")
+          f"after compile {t_reg2:.1f} s (CPU {CPU['reg1']:.1f} s, {CPU['reg2']:.1f} s); {_load()}")
 
-    (post, res, opts, _), t_em1 = _timed(classify, vol, priors, cfg)
-    (post, res, opts, _), t_em2 = _timed(classify, vol, priors, cfg)
+    (post, res, opts, _), t_em1 = _timed(classify, vol, priors, cfg, key="em1")
+    (post, res, opts, _), t_em2 = _timed(classify, vol, priors, cfg, key="em2")
     n_iter = int(res.n_iter)
     print(f"EM + MRF (classify; {n_iter} EM iterations on the {cfg.em_sample_mm:g} mm sample, "
           f"{cfg.sweeps} + {cfg.sweeps} sweeps at 1 mm): first call {t_em1:.1f} s, after compile {t_em2:.1f} s "
-          f"(target <= 20 s: {'met' if t_em2 <= 20 else 'NOT met'})")
+          f"(CPU {CPU['em1']:.1f} s, {CPU['em2']:.1f} s; target <= 20 s: {'met' if t_em2 <= 20 else 'NOT met'}); "
+          f"{_load()}")
     labels = post.argmax(0)
     dice = [2 * ((labels == k) & (truth.labels == k)).sum() / ((labels == k).sum() + (truth.labels == k).sum())
             for k in range(1, 5)]
@@ -103,7 +114,7 @@ def main():
     w = np.asarray(res.params.weights, np.float32)
     sl = tuple(slice(None, None, s) for s in stride)
     ys, ps = y[sl], pri[(slice(None),) + sl]
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     q = ps.copy()
     for _ in range(2):
         q, _, _ = numpy_em_iteration(ys, ps, q, mu, var, w, cc, opts.beta)
@@ -115,9 +126,11 @@ def main():
     t_np_sweep = (time.perf_counter() - t) / 2
     n_sweeps = (2 * cfg.sweeps + 1) if any(s > 1 for s in stride) else 0
     t_np = n_iter * t_np_iter + n_sweeps * t_np_sweep
+    c_np = (time.process_time() - c) / (t_np_iter + t_np_sweep) / 2 * t_np  # CPU/wall of the NumPy runs
     print(f"NumPy baseline (same model, float32): {t_np_iter:.2f} s per EM iteration on the sample, "
           f"{t_np_sweep:.2f} s per full-grid sweep -> {t_np:.1f} s for the same work")
-    print(f"ratio NumPy / jaxhead (EM + MRF, after compile): {t_np / t_em2:.2f}x")
+    print(f"ratio NumPy / jaxhead (EM + MRF, after compile): wall {t_np / t_em2:.2f}x, "
+          f"CPU {c_np / CPU['em2']:.2f}x (NumPy CPU extrapolated {c_np:.1f} s); {_load()}")
 
 
 if __name__ == "__main__":

@@ -10,7 +10,10 @@ the evaluation subjects are seeds 0..n-1.
 
 Usage:
     .venv/bin/python experiments/segmentation_accuracy.py [--subjects 3] [--voxel-mm 2] \\
-        [--modalities mri ct] [--ablations] [--out results.json]
+        [--modalities mri ct] [--ablations] [--out experiments/results/segmentation_accuracy]
+
+Writes <out>.json (one row per subject, method and noise level) and <out>.md (the table of means),
+each atomically (temporary file in the same folder, then os.replace).
 """
 
 from __future__ import annotations
@@ -123,6 +126,17 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def _write_atomic(path: str, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--subjects", type=int, default=3, help="evaluation subjects (seeds 0..n-1)")
@@ -130,21 +144,29 @@ def main(argv=None):
     p.add_argument("--atlas-voxel-mm", type=float, default=2.0)
     p.add_argument("--modalities", nargs="+", default=["mri", "ct"], choices=["mri", "ct"])
     p.add_argument("--ablations", action="store_true", help="also run affine-only, no-MRF, no-relaxation")
-    p.add_argument("--out", default=None, help="write the rows as JSON here (atomically)")
+    p.add_argument("--out", default=None,
+                   help="path stem: write <out>.json (rows) and <out>.md (table), atomically")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     for name in ("jax", "jaxhead.phantom"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    t0, c0 = time.perf_counter(), time.process_time()
     rows = run(args)
-    print(f"\nDice per tissue, mean over {args.subjects} subjects (seeds 0..{args.subjects - 1}), "
-          f"{args.voxel_mm:g} mm voxels; noise: MRI fraction of white matter, CT HU\n")
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    head = (f"Dice per tissue, mean (and minimum) over {args.subjects} subjects (phantom seeds "
+            f"0..{args.subjects - 1}, not in the atlas), {args.voxel_mm:g} mm voxels, atlas "
+            f"{args.atlas_voxel_mm:g} mm; noise: MRI fraction of white matter, CT HU. "
+            f"Run: {wall:.0f} s wall, {cpu:.0f} s CPU, load average {os.getloadavg()[0]:.1f} at the end.")
+    print("\n" + head + "\n")
     print(table(rows))
     if args.out:
-        d = os.path.dirname(os.path.abspath(args.out))
-        fd, tmp = tempfile.mkstemp(dir=d, suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            json.dump(rows, f, indent=1)
-        os.replace(tmp, args.out)
+        stem = args.out[:-5] if args.out.endswith(".json") else args.out
+        os.makedirs(os.path.dirname(os.path.abspath(stem)), exist_ok=True)
+        meta = dict(subjects=args.subjects, voxel_mm=args.voxel_mm, atlas_voxel_mm=args.atlas_voxel_mm,
+                    modalities=args.modalities, ablations=args.ablations, wall_s=wall, cpu_s=cpu,
+                    command=" ".join(["python", "experiments/segmentation_accuracy.py", *(argv or sys.argv[1:])]))
+        _write_atomic(stem + ".json", json.dumps(dict(meta=meta, rows=rows), indent=1))
+        _write_atomic(stem + ".md", f"{head}\n\nCommand: `{meta['command']}`\n\n{table(rows)}\n")
     return 0
 
 
