@@ -286,13 +286,15 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
         fit_std = noise_std(v0, c.noise_percent) if c.noise_percent > 0 else None
         res = fit_conductivities(model, protocol, measured, init=np.asarray(c.fit_init_s_m),
                                  noise_std=fit_std,
-                                 solver=LineSearchGaussNewton(rtol=1e-6, atol=1e-6))
+                                 solver=LineSearchGaussNewton(rtol=1e-6, atol=1e-6),
+                                 max_steps=50, throw=False)
         table = res.table() + "\n\ntrue (S/m): " + ", ".join(f"{v:g}" for v in sigma) + "\n"
         _write_text(out / "fit.txt", table)
         summary["fit_sigma"] = res.sigma.tolist()
         summary["fit_rel_error"] = (res.sigma / sigma - 1).tolist()
         summary["fit_n_forward"] = res.n_forward
         summary["fit_n_steps"] = res.n_steps
+        summary["fit_converged"] = res.success
         seconds["fit"] = time.perf_counter() - t0
     summary["seconds"] = seconds
     return summary

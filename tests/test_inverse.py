@@ -157,6 +157,32 @@ def test_grid_sums_jacobian_columns():
     assert np.all((brain.cell_of_tet >= 0) == (mesh.labels == 1))
 
 
+def test_grid_merges_partly_filled_cells():
+    mesh = small_mesh()
+    cell_mm = 6.0
+    raw = make_grid(mesh, cell_mm, tissues=["brain"], min_fill=0.0)
+    merged = make_grid(mesh, cell_mm, tissues=["brain"], min_fill=0.5)
+    full = raw.volumes >= 0.5 * cell_mm**3
+    assert 0 < full.sum() < raw.n_cells  # the ball's boundary cuts some cells
+    # Full cells stay; every sliver joins one of them; the volume is conserved.
+    assert merged.n_cells == full.sum()
+    assert np.all(merged.volumes >= 0.5 * cell_mm**3)
+    np.testing.assert_allclose(merged.volumes.sum(), raw.volumes.sum(), rtol=1e-12)
+    np.testing.assert_array_equal(merged.cell_of_tet >= 0, raw.cell_of_tet >= 0)
+    # A tet of a full cell keeps its cell-mates; a sliver tet goes to the nearest full cell.
+    cen = mesh.centroids()
+    for t in np.flatnonzero(raw.cell_of_tet >= 0):
+        mates = raw.cell_of_tet == raw.cell_of_tet[t]
+        if full[raw.cell_of_tet[t]]:
+            assert np.all(merged.cell_of_tet[mates] == merged.cell_of_tet[t])
+        else:
+            d = np.linalg.norm(raw.centres[full] - cen[t], axis=1)
+            target = merged.cell_of_tet[(raw.cell_of_tet == np.flatnonzero(full)[d.argmin()])][0]
+            assert merged.cell_of_tet[t] == target
+    with pytest.raises(ValueError, match="min_fill"):
+        make_grid(mesh, cell_mm, min_fill=1.5)
+
+
 def test_perturbation_and_metrics():
     mesh = small_mesh()
     sigma = np.ones(mesh.n_tets)
