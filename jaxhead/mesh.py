@@ -163,7 +163,9 @@ class TetMesh(eqx.Module):
 #: least sensitive to, grades from its 6 mm surface to 10 mm inside. The element budget is the
 #: seed paper's (~300k tets for an adult head, Vonach et al. 2012 Table 2). The tet count follows
 #: the surfaces more than these edges (fTetWild keeps every surface triangle): finer surfaces
-#: (the former 3/2/2.5/3 mm) gave 2.13M tets on the 1 mm MRI phantom.
+#: (the former 3/2/2.5/3 mm) gave 2.13M tets on the 1 mm MRI phantom; these defaults give 259k
+#: tets there, 0 outside Table 2, tissue volumes within 1.2 % of the voxels'
+#: (``benchmarks/mesh.py``).
 DEFAULT_EDGE_MM = {"brain": 10.0, "csf": 4.0, "skull": 4.5, "scalp": 6.0}
 
 
