@@ -61,8 +61,8 @@ def numpy_em_iteration(y, prior, post_prev, mu, var, w, cc, beta):
     pj = np.exp(lj - m)
     lk = np.stack([pj[cc == c].sum(0) for c in range(k)])
     joint = pr * lk
-    post = joint / joint.sum(0, keepdims=True)
-    r = post[cc] * pj / lk[cc]
+    post = joint / np.maximum(joint.sum(0, keepdims=True), np.finfo(np.float32).tiny)
+    r = post[cc] * pj / np.maximum(lk[cc], np.finfo(np.float32).tiny)
     n = r.sum((1, 2, 3))
     mu = (r * y).sum((1, 2, 3)) / n
     var = (r * (y[None] - mu[:, None, None, None]) ** 2).sum((1, 2, 3)) / n

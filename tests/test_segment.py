@@ -123,4 +123,12 @@ def test_segment_config_per_tissue_gaussians():
     opts = cfg.em_options(1.0)
     assert opts.component_class == (0, 0, 1, 2, 2, 2, 3, 4, 4, 4) and opts.bias_degree == 0
     assert SegmentConfig(modality="mri").em_options(1.0).bias_degree == 4
+    assert opts.pv_of == () and not opts.pv_log
+    # partial volume: the free Gaussians, then per bordering pair (background|scalp, scalp|skull,
+    # skull|csf, csf|brain) one tied Gaussian in each class, naming the other class
+    pv = SegmentConfig(modality="mri", partial_volume=True, gaussians={"csf": 2}).em_options(1.0)
+    assert pv.component_class == (0, 0, 0, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 4, 4, 4, 4)
+    assert pv.pv_of == (-1, -1, 4, -1, -1, 2, -1, -1, 3, 1, -1, -1, 4, 2, -1, -1, 0, 3) and pv.pv_log
+    with pytest.raises(ValueError, match="partial_volume"):
+        SegmentConfig(partial_volume="yes")
     assert dataclasses.replace(cfg, beta=0.0).beta == 0.0

@@ -21,6 +21,18 @@ degree <= d without the constant (the means absorb it). Iterations:
   posterior (renormalised), so anatomy that differs from the atlas can win where the image evidence
   is strong, and the EM runs on to convergence again (NiftySeg relaxes once, after convergence; a
   relaxation at every iteration feeds the posterior back into its own prior and drifts).
+- Partial volume (optional, `pv_of`): a voxel on the boundary of tissues A and B holds a fraction f
+  of A and has intensity f I_A + (1 - f) I_B (+ noise); its label (the tissue at its centre, for a
+  boundary that is flat on the voxel's scale) is A iff f > 1/2. So each bordering class pair gets two
+  *tied* Gaussians, one per half of the mixing line: owned by A, f uniform on (1/2, 1); owned by B,
+  f on (0, 1/2). Mean = the half's midpoint, variance = its span^2 / 12 + the smaller pure variance
+  (noise), recomputed from the pure Gaussians after every M-step (the pure pair is the one closest
+  in intensity); the weights are free. In log intensities (MRI) the mixing is done on exp(y).
+  Without this, free "partial-volume" Gaussians belong to one class and take every mixed voxel,
+  and a narrow pure Gaussian (air, soft tissue) next to a broad one (bone, a free PV Gaussian) puts
+  the decision threshold at a few per cent of the narrow tissue: the broad class grows by a voxel
+  (Van Leemput et al. 2003, IEEE TMI 22:105, model partial volume as such mixtures; Santago &
+  Gage 1993, IEEE TMI 12:566, the uniform-fraction "mixel" density).
 - Stop when the change of the mean log-likelihood per voxel is below tol (inside lax.while_loop).
 
 The E-step works in the probability domain after subtracting each voxel's largest component
@@ -65,6 +77,10 @@ class EMOptions:
         var_floor: variance floor in standardised units (fraction of the data variance).
         prior_floor: probability added to every prior before normalising (the atlas is an estimate:
             no class is impossible anywhere).
+        pv_of: per Gaussian, -1 for a free ("pure") Gaussian, or the class b it is a partial-volume
+            mixture with: a tied Gaussian of the half of the mixing line nearer its own class
+            (see the module docstring). Empty: all free.
+        pv_log: the data are log intensities (partial-volume mixing is done on exp(y)).
     """
 
     component_class: tuple[int, ...]
@@ -80,9 +96,24 @@ class EMOptions:
     bias_ridge: float = 1e-6
     var_floor: float = 1e-4
     prior_floor: float = 1e-4
+    pv_of: tuple[int, ...] = ()
+    pv_log: bool = False
 
     def __post_init__(self):
         cc = tuple(self.component_class)
+        if self.pv_of:
+            pv = tuple(self.pv_of)
+            if len(pv) != len(cc):
+                raise ValueError(f"`pv_of` {pv} must have one entry per Gaussian ({len(cc)}), or be empty.")
+            for j, b in enumerate(pv):
+                if b != -1 and not (0 <= b < self.n_classes and b != cc[j]):
+                    raise ValueError(
+                        f"`pv_of[{j}]` = {b}: must be -1 (free) or another class 0..{self.n_classes - 1} "
+                        f"than the Gaussian's own ({cc[j]})."
+                    )
+            for k in range(self.n_classes):
+                if all(pv[j] >= 0 for j in range(len(cc)) if cc[j] == k):
+                    raise ValueError(f"class {k} has only partial-volume Gaussians in `pv_of` {pv}; give it a free one.")
         if not cc or min(cc) < 0 or max(cc) >= self.n_classes:
             raise ValueError(
                 f"`component_class` {cc} must name classes 0..{self.n_classes - 1}; one entry per Gaussian."
@@ -105,6 +136,10 @@ class EMOptions:
     def groups(self) -> list[list[int]]:
         """The component indices of each class."""
         return [[j for j, c in enumerate(self.component_class) if c == k] for k in range(self.n_classes)]
+
+    def is_free(self, j: int) -> bool:
+        """Whether Gaussian j has its own mean and variance (not a tied partial-volume one)."""
+        return not self.pv_of or self.pv_of[j] < 0
 
 
 class MixtureParams(eqx.Module):
@@ -334,6 +369,44 @@ def _m_step(y, r, mu_old, opts: EMOptions, var_floor):
     return mu, var, jnp.stack(w)
 
 
+def _tie_partial_volume(mu, var, opts: EMOptions, c, s):
+    """Set the tied partial-volume Gaussians from the pure ones (standardised units; see module doc).
+
+    Gaussian j of class a mixing with class b: the pure pair (ja of a, jb of b) closest in mean;
+    mixing line I_b -> I_a in data units (exp of the data for log intensities); the half-line
+    f in (1/2, 1) (A's side) mapped back to standardised units gives the endpoints e0 (f = 1/2), e1 (f = 1);
+    mean (e0 + e1) / 2, variance (e1 - e0)^2 / 12 (uniform f) + min(var_ja, var_jb) (noise),
+    faded into a copy of Gaussian ja where the line is not resolvable (|mu_ja - mu_jb| < 4 noise sd).
+    """
+    if not opts.pv_of or all(b < 0 for b in opts.pv_of):
+        return mu, var
+    free = [[j for j in g if opts.is_free(j)] for g in opts.groups]
+    for j, b in enumerate(opts.pv_of):
+        if b < 0:
+            continue
+        a = opts.component_class[j]
+        pairs = [(ja, jb) for ja in free[a] for jb in free[b]]
+        ia = np.array([p[0] for p in pairs])
+        ib = np.array([p[1] for p in pairs])
+        i = jnp.argmin(jnp.abs(mu[ia] - mu[ib]))
+        ma, mb = mu[ia][i], mu[ib][i]
+        noise = jnp.minimum(var[ia][i], var[ib][i])
+        if opts.pv_log:
+            half = jnp.log(0.5 * (jnp.exp(c + s * ma) + jnp.exp(c + s * mb)))
+            e0 = (half - c) / s
+        else:
+            e0 = 0.5 * (ma + mb)
+        e1 = ma
+        # A mixing line shorter than the noise cannot be resolved (an equal mixture of two Gaussians
+        # of sd sigma is bimodal only if their means differ by > 2 sigma): there, the tied Gaussian
+        # fades into a copy of the pure one (t = 0 at 2 sigma, 1 at 4 sigma), which leaves the
+        # class's likelihood unchanged instead of adding an unidentifiable split.
+        t = jnp.clip((jnp.abs(ma - mb) / jnp.sqrt(noise) - 2.0) / 2.0, 0.0, 1.0)
+        mu = mu.at[j].set(ma + t * (0.5 * (e0 + e1) - ma))
+        var = var.at[j].set(var[ia][i] + t * ((e1 - e0) ** 2 / 12.0 + noise - var[ia][i]))
+    return mu, var
+
+
 def _init_params(ys, atlas, opts: EMOptions, n_hist: int = 1024):
     """Robust start values from each class's prior-weighted intensity distribution.
 
@@ -360,12 +433,18 @@ def _init_params(ys, atlas, opts: EMOptions, n_hist: int = 1024):
             frac = jnp.clip((q - below) / jnp.maximum(cdf[i] - below, jnp.finfo(dtype).tiny), 0.0, 1.0)
             return edges[i] - width * (1.0 - frac)  # linear within the bin
 
-        n_j = len(g)
-        for j in range(n_j):
-            mus.append(quantile((j + 0.5) / n_j))
-            iqr = quantile((j + 0.75) / n_j) - quantile((j + 0.25) / n_j)
+        n_j = sum(opts.is_free(j) for j in g)  # tied partial-volume Gaussians are set afterwards
+        i = 0
+        for j in g:
+            ws.append(1.0 / len(g))
+            if not opts.is_free(j):
+                mus.append(jnp.zeros((), dtype))
+                vars_.append(jnp.ones((), dtype))
+                continue
+            mus.append(quantile((i + 0.5) / n_j))
+            iqr = quantile((i + 0.75) / n_j) - quantile((i + 0.25) / n_j)
             vars_.append(jnp.maximum((iqr / 1.349) ** 2, opts.var_floor))
-            ws.append(1.0 / n_j)
+            i += 1
     return jnp.stack(mus), jnp.stack(vars_), jnp.asarray(ws, dtype=dtype)
 
 
@@ -407,6 +486,7 @@ def fit_mixture(y, priors, opts: EMOptions, init: MixtureParams | None = None, c
 
     if init is None:
         mu, var, w = _init_params(ys, atlas, opts)
+        mu, var = _tie_partial_volume(mu, var, opts, c, s)
         coef = jnp.zeros((n_bias,), dtype)
     else:
         mu = (jnp.asarray(init.means, dtype) - c) / s
@@ -425,6 +505,7 @@ def fit_mixture(y, priors, opts: EMOptions, init: MixtureParams | None = None, c
         post, pj, lk, ll = _e_step(yc, _mrf_prior(prior, post_prev, opts.beta), mu, var, w, opts)
         r = _responsibilities(post, pj, lk, opts)
         mu, var, w = _m_step(yc, r, mu, opts, floor)
+        mu, var = _tie_partial_volume(mu, var, opts, c, s)
         if degree > 0:
             wv = functools.reduce(jnp.add, [r[j] / var[j] for j in range(len(r)) if bias_comp[j]])
             rv = functools.reduce(jnp.add, [r[j] * (mu[j] / var[j]) for j in range(len(r)) if bias_comp[j]])
