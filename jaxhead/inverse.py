@@ -21,39 +21,49 @@ class TSVD(eqx.Module):
     """Truncated SVD: keep the `k` largest singular values (chosen by `rule` when None).
 
     `noise_weighted` truncates the SVD of W J (W = diag(1 / noise_std)) applied to W dv, i.e.
-    whitened data; `normalise` solves for D x with D = diag(column norms of (W) J), the NOSER
-    scaling (Cheney et al. 1990, Int. J. Imaging Syst. Technol. 2:66), which removes the
+    whitened data; `normalise` solves for D x with D = diag(column norms of (W) J)^p, the NOSER
+    scaling (Cheney et al. 1990, Int. J. Imaging Syst. Technol. 2:66), which counters the
     zeroth-order prior's pull of the image towards the most sensitive (superficial) elements.
+    `normalise=True` is p = 1 (full NOSER); a number in [0, 1] sets p. p = 0.5 is EIDORS's
+    `prior_noser` default exponent (Adler & Lionheart 2006, Physiol. Meas. 27:S25): on heads,
+    p = 1 lifts the least sensitive cells (far from the electrodes) into spurious peaks.
     """
 
     k: int | None = eqx.field(static=True, default=None)
     rule: Rule = eqx.field(static=True, default="gcv")
     noise_weighted: bool = eqx.field(static=True, default=False)
-    normalise: bool = eqx.field(static=True, default=False)
+    normalise: bool | float = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.k is not None and self.k < 1:
             raise ValueError(f"`TSVD.k` must be >= 1 (or None to choose it), got {self.k}.")
         _check_rule(self.rule)
+        _check_exponent(self.normalise)
 
 
 class Tikhonov(eqx.Module):
     """Zeroth-order Tikhonov: minimise ||W (J x - dv)||^2 + lam^2 ||D x||^2.
 
     `lam` is chosen by `rule` when None; `noise_weighted` uses W = diag(1 / noise_std) per
-    channel (else W = I); `normalise` uses D = diag(column norms of W J), the NOSER prior
-    (Cheney et al. 1990), else D = I.
+    channel (else W = I); `normalise` uses D = diag(column norms of W J)^p, the NOSER prior
+    (Cheney et al. 1990; p as in `TSVD`: True is 1, a number in [0, 1] sets p), else D = I.
     """
 
     lam: float | None = eqx.field(static=True, default=None)
     rule: Rule = eqx.field(static=True, default="gcv")
     noise_weighted: bool = eqx.field(static=True, default=False)
-    normalise: bool = eqx.field(static=True, default=False)
+    normalise: bool | float = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.lam is not None and not self.lam > 0:
             raise ValueError(f"`Tikhonov.lam` must be > 0 (or None to choose it), got {self.lam}.")
         _check_rule(self.rule)
+        _check_exponent(self.normalise)
+
+
+def _check_exponent(normalise):
+    if not 0 <= float(normalise) <= 1:
+        raise ValueError(f"`normalise` = {normalise!r}; use True/False or an exponent in [0, 1].")
 
 
 def _check_rule(rule):
@@ -86,15 +96,15 @@ class SVD(eqx.Module):
 
     Attributes:
         u: (n_rows, r), s: (r,), vt: (r, n_params): J D^-1 = U S V^T.
-        scale: (n_params,) the column scaling D (ones unless `svd(J, normalise=True)`).
-        normalised: whether D holds J's column norms.
+        scale: (n_params,) the column scaling D (ones unless `svd(J, normalise=...)`).
+        normalised: the exponent p of D = diag(column norms)^p (0: no scaling).
     """
 
     u: Float[Array, "n_rows r"]
     s: Float[Array, " r"]
     vt: Float[Array, "r n_params"]
     scale: Float[Array, " n_params"]
-    normalised: bool = eqx.field(static=True, default=False)
+    normalised: float = eqx.field(static=True, default=0.0)
 
 
 def svd(J, *, normalise: bool = False, gram: bool | None = None) -> SVD:
@@ -110,8 +120,8 @@ def svd(J, *, normalise: bool = False, gram: bool | None = None) -> SVD:
 
     Arguments:
         J: (n_rows, n_params) matrix.
-        normalise: decompose J D^-1 with D = diag(||J[:, j]||) (columns that are all zero keep
-            scale 1).
+        normalise: decompose J D^-1 with D = diag(||J[:, j]||)^p, p = 1 for True, 0 for
+            False, or a number in [0, 1] (columns that are all zero keep scale 1).
         gram: force the route; None takes the Gram route when one side is over twice the other
             or both exceed 500 (where LAPACK's SVD costs seconds).
 
@@ -125,11 +135,13 @@ def svd(J, *, normalise: bool = False, gram: bool | None = None) -> SVD:
         raise ValueError(f"`J` must be 2D (n_rows, n_params), got shape {J.shape}.")
     if not np.all(np.isfinite(J)):
         raise ValueError("`J` contains NaN or Inf.")
+    _check_exponent(normalise)
+    p = float(normalise)
     m, n = J.shape
     scale = np.ones(n)
-    if normalise:
+    if p > 0:
         norms = np.linalg.norm(J, axis=0)
-        scale = np.where(norms > 0, norms, 1.0)
+        scale = np.where(norms > 0, norms**p, 1.0)
         J = J / scale
     if gram is None:
         gram = max(m, n) > 2 * min(m, n) or min(m, n) > 500
@@ -151,7 +163,7 @@ def svd(J, *, normalise: bool = False, gram: bool | None = None) -> SVD:
         u, s, vt = np.linalg.svd(J, full_matrices=False)
         keep = s > s[0] * np.finfo(np.float64).eps * max(m, n)
         u, s, vt = u[:, keep], s[keep], vt[keep]
-    return SVD(u, s, vt, scale, bool(normalise))
+    return SVD(u, s, vt, scale, p)
 
 
 def _weights(dv, noise_std):
@@ -262,7 +274,7 @@ def _setup(J, dv, method, noise_std, decomposition):
         if Jw.ndim != 2:
             raise ValueError(f"`J` must be 2D (n_rows, n_params), got shape {Jw.shape}.")
         decomposition = svd(Jw * w[:, None] if weighted else Jw, normalise=method.normalise)
-    elif decomposition.normalised != method.normalise:
+    elif decomposition.normalised != float(method.normalise):
         raise ValueError(
             f"`decomposition` was made with normalise={decomposition.normalised} but the method "
             f"has normalise={method.normalise}; pass svd(J, normalise={method.normalise}).")

@@ -261,12 +261,13 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
     kind = TSVD if c.method == "tsvd" else Tikhonov
     if c.noise_percent > 0:
         # Whitened by the noise level (floored at 3 % of the RMS standing voltage, so that
-        # near-zero channels are not trusted beyond the model's accuracy) and NOSER-normalised.
+        # near-zero channels are not trusted beyond the model's accuracy) and half-NOSER
+        # normalised (exponent 0.5, EIDORS prior_noser; full NOSER lifts deep cells on heads).
         std = noise_std(v0, c.noise_percent, floor=0.03)
-        rec = reconstruct(Jg, dv_noisy, kind(noise_weighted=True, normalise=True), noise_std=std)
+        rec = reconstruct(Jg, dv_noisy, kind(noise_weighted=True, normalise=0.5), noise_std=std)
     else:
         std = None
-        rec = reconstruct(Jg, dv_noisy, kind(normalise=True))
+        rec = reconstruct(Jg, dv_noisy, kind(normalise=0.5))
     x = np.asarray(rec.image)
     m = image_metrics(x, grid.centres, grid.volumes, centre, c.radius_mm,
                       sign=1 if c.rel_change > 0 else -1)

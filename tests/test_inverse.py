@@ -272,8 +272,23 @@ def test_normalised_and_weighted_methods_match_dense_formulas():
     y = vt[:k].T @ ((u[:, :k].T @ (W @ b)) / s[:k])
     rec = reconstruct(J, b, TSVD(k, noise_weighted=True, normalise=True), noise_std=std)
     np.testing.assert_allclose(np.asarray(rec.image), np.linalg.solve(D, y), rtol=1e-8)
+    # Partial NOSER, D = diag(column norms)^0.5 (EIDORS prior_noser's default exponent).
+    D5 = np.sqrt(D)
+    x_ref = np.linalg.solve(J.T @ W @ W @ J + lam**2 * D5 @ D5, J.T @ W @ W @ b)
+    rec = reconstruct(J, b, Tikhonov(lam, noise_weighted=True, normalise=0.5), noise_std=std)
+    np.testing.assert_allclose(np.asarray(rec.image), x_ref, rtol=1e-8)
+    dec = svd(W @ J, normalise=0.5)
+    rec = reconstruct(None, b, TSVD(k, noise_weighted=True, normalise=0.5), noise_std=std,
+                      decomposition=dec)
+    u, s, vt = np.linalg.svd(W @ J @ np.linalg.inv(D5), full_matrices=False)
+    y = vt[:k].T @ ((u[:, :k].T @ (W @ b)) / s[:k])
+    np.testing.assert_allclose(np.asarray(rec.image), np.linalg.solve(D5, y), rtol=1e-8)
     with pytest.raises(ValueError, match="normalise"):
         reconstruct(J, b, TSVD(k, normalise=True), decomposition=svd(J))
+    with pytest.raises(ValueError, match="normalise"):
+        reconstruct(J, b, TSVD(k, normalise=0.5), decomposition=svd(J, normalise=True))
+    with pytest.raises(ValueError, match="normalise"):
+        Tikhonov(normalise=2.0)
     with pytest.raises(ValueError, match="needs `noise_std`"):
         reconstruct(J, b, TSVD(k, noise_weighted=True))
 
