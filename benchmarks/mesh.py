@@ -12,6 +12,10 @@ manual steps in MeshLab and CUBIT); no automatic peer runs here.
     .venv/bin/python benchmarks/mesh.py --voxel-mm 1.0 --modality mri [--threads 1] [--save out.npz]
 
 The machine is shared: pass --threads 1 for comparable numbers on a loaded 2-core machine.
+
+Measured (2 shared cores, load average 6-7, default sizes): 1 mm MRI phantom 258,873 tets, 0
+elements outside Table 2, volumes within 1.2 % of the voxels', centroid agreement 99.43 % of tets
+(99.83 % of volume); label map -> quality report 672 s wall, 299 s CPU (fTetWild 645 s wall).
 """
 
 import argparse
