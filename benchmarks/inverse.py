@@ -11,8 +11,8 @@ Timed in one run (wall and CPU; the machine is shared):
 1. `jacobian` (899 x n_tets, float32 storage, float64 solves).
 2. grid: `make_grid` (brain cells of `--cell-mm`) + `jacobian_to_grid` (baseline: the per-tet
    matrix, then its columns summed) vs `jacobian_grid` (tiles summed straight into cells).
-3. SVD of the grid matrix (whitened by the noise level, column-normalised: the recipe of
-   tests/test_inverse_recovery.py): jaxhead `svd` (Gram route) vs `numpy.linalg.svd` (LAPACK
+3. SVD of the grid matrix (whitened by the noise level, half-NOSER column scaling, exponent
+   0.5, as the pipeline's inverse stage): jaxhead `svd` (Gram route) vs `numpy.linalg.svd` (LAPACK
    gesdd) on the same matrix, and one TSVD/GCV reconstruction vs NumPy's truncated
    pseudo-inverse with the same k.
 4. 200 noise realisations: `reconstruct_batch` (vmap, each with its own GCV choice) vs a loop
@@ -94,7 +94,7 @@ def main():
     v0 = np.asarray(simulate(model, sigma, protocol))
     dv = add_noise(np.asarray(simulate(model, pert, protocol)) - v0, 0.5, seed=0, reference=v0)
     std = noise_std(v0, 0.5, floor=0.03)
-    method = TSVD(noise_weighted=True, normalise=True)
+    method = TSVD(noise_weighted=True, normalise=0.5)
 
     print("1. Jacobian")
     jacobian(model, sigma * 1.01, protocol, dtype=np.float32)  # compile
@@ -115,10 +115,10 @@ def main():
           f"{np.abs(Jg2 - Jg).max() / np.abs(Jg2).max():.1e} (float32 storage of J)")
     Jg = Jg2
 
-    print("3. SVD + TSVD (GCV) on the grid matrix, whitened and column-normalised")
+    print("3. SVD + TSVD (GCV) on the grid matrix, whitened and column-scaled (NOSER exponent 0.5)")
     A = Jg / std[:, None]
-    svd(A[:, :50], normalise=True)  # warm up
-    dec, w_j, c_j = timed(lambda: svd(A, normalise=True))
+    svd(A[:, :50], normalise=0.5)  # warm up
+    dec, w_j, c_j = timed(lambda: svd(A, normalise=0.5))
     line("jaxhead svd (Gram route)", w_j, c_j)
     An = A / dec.scale
     (u, s, vt), w_n, c_n = timed(lambda: np.linalg.svd(An, full_matrices=False))
@@ -163,7 +163,7 @@ def main():
     print("5. the same on the brain tets (no grid)")
     Jb = np.asarray(J[:, brain], dtype=np.float64) / std[:, None]
     del J
-    dec_t, w_t, c_t = timed(lambda: svd(Jb, normalise=True))
+    dec_t, w_t, c_t = timed(lambda: svd(Jb, normalise=0.5))
     line(f"jaxhead svd (Gram route) of {Jb.shape}", w_t, c_t)
     rec_t, w_rt, c_rt = timed(lambda: reconstruct(None, dv, method, noise_std=std,
                                                   decomposition=dec_t))
