@@ -22,13 +22,14 @@ from .electrodes import (
     spread_positions,
 )
 from .fem import Direct, ForwardModel, build_forward_model, jacobian, potentials, simulate
-from .fit import FitResult, fit_conductivities
+from .fit import FitResult, LineSearchGaussNewton, fit_conductivities
 from .inverse import (
     TSVD,
     Reconstruction,
     Tikhonov,
     add_noise,
     image_metrics,
+    jacobian_grid,
     jacobian_to_grid,
     make_grid,
     reconstruct,
