@@ -50,6 +50,7 @@ from jaxhead.fem import (BlockCG, Direct, Jacobi, SmoothedAggregation, assemble,
                          build_forward_model, jacobian, simulate)
 from jaxhead.fem.cem import electrode_rhs  # noqa: E402
 from jaxhead.fem.forward import _basis_currents  # noqa: E402
+from jaxhead.io import load_mesh  # noqa: E402
 from jaxhead.protocol import Protocol, adjacent  # noqa: E402
 from jaxhead.tissue import default_sigma  # noqa: E402
 
@@ -72,6 +73,9 @@ def main():
     ap.add_argument("--threads", type=int, default=None, help="PARDISO threads (default MKL's)")
     ap.add_argument("--cg", action="store_true", help="also time BlockCG (Jacobi, SA-AMG)")
     ap.add_argument("--no-scipy", action="store_true", help="skip the slow SciPy baseline")
+    ap.add_argument("--mesh", default=None,
+                    help="time a mesh file instead of the ball (e.g. runs/demo/mri/mesh/mesh.vtu); "
+                         "32 electrodes spread over its upper head")
     ap.add_argument("--gpu", action="store_true",
                     help="run JAX on the accelerator with BlockCG + smoothed aggregation")
     args = ap.parse_args()
@@ -79,14 +83,20 @@ def main():
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPUs, "
           f"load average {os.getloadavg()[0]:.1f} (shared machine: compare CPU and wall)")
 
-    mesh = structured_sphere_mesh(RADII_MM, h_mm=args.h_mm)
-    landmarks = {"nasion": [0, R, 0], "inion": [0, -R, 0], "lpa": [-R, 0, 0], "rpa": [R, 0, 0]}
-    elec = place_electrodes(mesh, 32, landmarks=landmarks, radius_mm=10.0)
+    if args.mesh:
+        mesh = load_mesh(args.mesh)
+        elec = place_electrodes(mesh, 32, radius_mm=6.0)
+        what_mesh = f"{args.mesh}"
+    else:
+        mesh = structured_sphere_mesh(RADII_MM, h_mm=args.h_mm)
+        landmarks = {"nasion": [0, R, 0], "inion": [0, -R, 0], "lpa": [-R, 0, 0], "rpa": [R, 0, 0]}
+        elec = place_electrodes(mesh, 32, landmarks=landmarks, radius_mm=10.0)
+        what_mesh = f"structured 4-shell ball, h={args.h_mm} mm"
     full = adjacent(32, current_a=1e-3)
     protocol = Protocol(full.rows[full.rows[:, 0] < 31], 1e-3)  # 31 injections
     n_inj = len({tuple(r) for r in protocol.rows[:, :2].tolist()})
-    print(f"mesh: {mesh.n_nodes} nodes, {mesh.n_tets} tets (structured 4-shell ball, "
-          f"h={args.h_mm} mm); {elec.n_elec} electrodes, {n_inj} injections, "
+    print(f"mesh: {mesh.n_nodes} nodes, {mesh.n_tets} tets ({what_mesh}); "
+          f"{elec.n_elec} electrodes, {n_inj} injections, "
           f"{protocol.n_rows} rows")
 
     sigma0 = jnp.asarray(default_sigma())
