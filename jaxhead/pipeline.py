@@ -52,12 +52,14 @@ def _jsonable(obj):
     return obj
 
 
+#: Config sections a stage reads besides its own (the mesh is refined under the electrodes).
+STAGE_READS = {"mesh": ("electrodes",), "forward": ("electrodes", "protocol")}
+
+
 def stage_hash(cfg: RunConfig, stage: str, previous: str) -> str:
-    """Hash of a stage's config section chained with the previous stage's hash."""
-    section = getattr(cfg, stage, None)
-    if stage == "input":
-        section = cfg.input
-    payload = json.dumps([previous, stage, _jsonable(section)], sort_keys=True, default=str)
+    """Hash of the config sections a stage reads, chained with the previous stage's hash."""
+    sections = [getattr(cfg, name, None) for name in (stage, *STAGE_READS.get(stage, ()))]
+    payload = json.dumps([previous, stage, _jsonable(sections)], sort_keys=True, default=str)
     return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
 

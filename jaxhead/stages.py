@@ -4,8 +4,12 @@ Each stage is ``fn(cfg, subject) -> summary dict``. Only public jaxhead function
 no numerics live in this module.
 """
 
+import logging
+
 from .config import RunConfig
 from .pipeline import Subject
+
+logger = logging.getLogger(__name__)
 
 
 def run_input(cfg: RunConfig, subject: Subject) -> dict:
@@ -132,13 +136,32 @@ def run_mesh(cfg: RunConfig, subject: Subject) -> dict:
 
     surfaces = {t: io.load_surface(subject.file("surfaces", f"{t.name.lower()}.stl"), t)
                 for t in TISSUES}
-    mesh, report = tetrahedralize_reported(surfaces, cfg.mesh)
+    mesh_cfg = _mesh_config(cfg, surfaces)
+    mesh, report = tetrahedralize_reported(surfaces, mesh_cfg)
     out = subject.dir("mesh")
     io.save_mesh(mesh, out / "mesh.vtu")
     _write_text(out / "report.txt", str(report))
     plot_mesh_cut(mesh, out / "mesh_cut.png",
                   title=f"{subject.name}: {mesh.n_tets} tets, {mesh.n_nodes} nodes")
     return report.to_dict()
+
+
+def _mesh_config(cfg: RunConfig, surfaces):
+    """The mesh stage's MeshConfig: [mesh], refined under the [electrodes] unless told not to."""
+    import dataclasses
+
+    from .electrodes import electrode_positions
+    from .tissue import Tissue
+
+    mesh_cfg = cfg.mesh
+    if not cfg.electrodes.refine_mesh or mesh_cfg.refine_points_mm:
+        return mesh_cfg  # refinement off, or the user's own refine points
+    pos = electrode_positions(surfaces[Tissue.SCALP], cfg.electrodes)
+    radius = max(mesh_cfg.refine_radius_mm, cfg.electrodes.radius_mm + 2 * mesh_cfg.refine_edge_mm)
+    logger.info("mesh: refining to %.1f mm within %.1f mm of %d electrode positions",
+                mesh_cfg.refine_edge_mm, radius, len(pos))
+    return dataclasses.replace(mesh_cfg, refine_points_mm=tuple(map(tuple, pos.tolist())),
+                               refine_radius_mm=radius)
 
 
 def run_export(cfg: RunConfig, subject: Subject) -> dict:

@@ -345,3 +345,21 @@ def test_electrode_config(mesh):
                       (dict(landmarks_mm={"nasion": (0, 1, 0)}), "lacks")):
         with pytest.raises(ValueError, match=match):
             ElectrodeConfig(**kw)
+
+
+@pytest.mark.parametrize("layout", [("Cz", "T7", "T8"), 12])
+def test_electrode_positions_match_placed_centres(mesh, layout):
+    # What the mesh stage refines at (from the scalp Surface, before meshing) is where
+    # electrodes_from_config later puts the discs on the mesh.
+    from jaxhead.electrodes import ElectrodeConfig, electrode_positions, electrodes_from_config
+    from jaxhead.surface import Surface
+
+    cfg = ElectrodeConfig(layout=layout, radius_mm=6.0, landmarks_mm=LANDMARKS)
+    f, _ = mesh.boundary_faces()
+    pos = electrode_positions(Surface(mesh.nodes, f, "scalp"), cfg)
+    e = electrodes_from_config(mesh, cfg)
+    assert pos.shape == (e.n_elec, 3)
+    # centres are the positions projected onto the same triangles: equal to round-off
+    np.testing.assert_allclose(pos, e.centres, atol=1e-6)
+    with pytest.raises(ValueError, match="refine_mesh"):
+        ElectrodeConfig(refine_mesh="yes")

@@ -63,3 +63,17 @@ def test_stage_names_checked(tmp_path):
     cfg = RunConfig(out_dir=str(tmp_path), stages=("input", "mesher"))
     with pytest.raises(ValueError, match="unknown stage"):
         run_pipeline(cfg, stages=_fake_stages([]), progress=lambda s: None)
+
+
+def test_electrode_change_reruns_the_mesh_stage(tmp_path):
+    # The mesh is refined under the electrodes: [electrodes] is part of the mesh stage's hash.
+    from jaxhead.electrodes import ElectrodeConfig
+
+    cfg = RunConfig(name="t", out_dir=str(tmp_path / "run"), input=InputConfig(modalities=("mri",)))
+    calls = []
+    stages = _fake_stages(calls)
+    run_pipeline(cfg, stages=stages, progress=lambda s: None)
+    calls.clear()
+    run_pipeline(dataclasses.replace(cfg, electrodes=ElectrodeConfig(layout=16)), stages=stages,
+                 progress=lambda s: None)
+    assert calls == [("mri", "mesh")]
