@@ -11,6 +11,7 @@ The pipeline, one verb per stage (STYLE.md):
     volts = simulate(model, default_sigma(), adjacent(32))
 """
 
+from .approx_error import ApproximationError, approximation_error, sample_conductivities
 from .electrodes import (
     DEFAULT_CONTACT_IMPEDANCE_OHM_M2,
     ElectrodeConfig,

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .approx_error import ApproximationError
 from .tissue import TISSUE_NAMES, Tissue
 
 
@@ -38,7 +39,8 @@ class FitResult(eqx.Module):
         std_error: (n_fit,) Gauss-Newton standard errors, same units as `estimates` (they assume
             `noise_std` is the true per-channel noise standard deviation).
         correlation: (n_fit, n_fit) correlation matrix of the estimates.
-        residual_norm: || W (V(sigma) - measured) || at the optimum (noise units when weighted).
+        residual_norm: || W (V(sigma) + offset - measured) || at the optimum, W the whitening
+            (1 / noise_std, with an `approx_error` its covariance too; offset its mean, else 0).
         n_steps: optimiser steps.
         n_forward: forward-model evaluations, i.e. distinct FEM systems factorised (counted by
             the Direct solver; derivatives reuse each factor; in a batched fit, the batch's
@@ -120,6 +122,9 @@ class _Problem(eqx.Module):
     protocol: object
     measured: jax.Array   # (n_rows,) V
     weight: jax.Array     # (n_rows,) 1 / noise std
+    offset: jax.Array     # (n_rows,) V added to the model (approx_error.mean; else zeros)
+    basis: jax.Array      # (n_rows, r) whitening correction Q (r = 0 without approx_error)
+    shrink: jax.Array     # (r,) its coefficients c: W x = w x + Q (c * Q^T (w x))
     init: jax.Array       # (4,) S/m
     z0: jax.Array         # (n_elec,) Ohm m^2
     lo: jax.Array         # (n_par,) log lower bounds
@@ -142,11 +147,13 @@ def _unpack(theta, p: _Problem):
 
 
 def _residuals(theta, p: _Problem):
-    """Weighted residuals W (V(sigma(theta)) - measured) (module level: compiled once)."""
+    """Whitened residuals W (V(sigma(theta)) + offset - measured) (module level: compiled once)."""
     from .fem import simulate
 
     sigma, z = _unpack(theta, p)
-    return p.weight * (simulate(p.model, sigma, p.protocol, contact_impedance=z) - p.measured)
+    v = simulate(p.model, sigma, p.protocol, contact_impedance=z)
+    u = p.weight * (v + p.offset - p.measured)
+    return u + p.basis @ (p.shrink * (p.basis.T @ u))
 
 
 @eqx.filter_jit
@@ -158,7 +165,8 @@ def _jacobian_log(theta, p: _Problem):
     return _residuals(theta, p), J_theta / dlog_dtheta[None, :]
 
 
-def _prepare(model, protocol, measured, *, init, fit, contact_impedance, noise_std, bounds):
+def _prepare(model, protocol, measured, *, init, fit, contact_impedance, noise_std, bounds,
+             approx_error=None):
     """Validate inputs, build the `_Problem` (without data) and the start point theta0."""
     names = _names(fit)
     init = np.asarray(init, dtype=np.float64)
@@ -181,6 +189,19 @@ def _prepare(model, protocol, measured, *, init, fit, contact_impedance, noise_s
     std = np.broadcast_to(np.asarray(noise_std, np.float64), (n_rows,))
     if not np.all(np.isfinite(std) & (std > 0)):
         raise ValueError("`noise_std` must be finite and > 0 for every channel (V).")
+    if approx_error is None:
+        weight, offset = 1.0 / std, np.zeros(n_rows)
+        basis, shrink = np.zeros((n_rows, 0)), np.zeros(0)
+    else:
+        if not isinstance(approx_error, ApproximationError):
+            raise ValueError("`approx_error` must be an ApproximationError (from jaxhead."
+                             "approximation_error(accurate, reduced, protocol, ...)), got "
+                             f"{type(approx_error).__name__}.")
+        if approx_error.mean.shape != (n_rows,):
+            raise ValueError(f"`approx_error` has {approx_error.mean.shape[0]} rows; the "
+                             f"protocol has {n_rows}: estimate it with the same protocol.")
+        weight, basis, shrink = approx_error.whitener(std)
+        offset = approx_error.mean
 
     idx = tuple(TISSUE_NAMES.index(n) for n in names)
     labels = list(names) + (["contact_impedance"] if contact_impedance else [])
@@ -201,7 +222,8 @@ def _prepare(model, protocol, measured, *, init, fit, contact_impedance, noise_s
     u = (np.log(start) - lo) / (hi - lo)
     theta0 = jnp.asarray(np.log(u / (1 - u)))  # logit: the inverse of _to_log
     prob = _Problem(model=model, protocol=protocol, measured=jnp.zeros(n_rows),
-                    weight=jnp.asarray(1.0 / std), init=jnp.asarray(init),
+                    weight=jnp.asarray(weight), offset=jnp.asarray(offset, jnp.float64),
+                    basis=jnp.asarray(basis), shrink=jnp.asarray(shrink), init=jnp.asarray(init),
                     z0=jnp.asarray(model.contact_impedance, jnp.float64), lo=jnp.asarray(lo),
                     hi=jnp.asarray(hi), idx=idx, fit_z=bool(contact_impedance))
     return prob, theta0, labels, measured
@@ -217,8 +239,11 @@ def _result(theta, prob: _Problem, labels, *, n_steps, n_forward, success, ill_c
     # Gauss-Newton covariance in log-parameters: (J^T J)^-1 for unit-variance weighted
     # residuals (Seber & Wild 1989, Nonlinear Regression, sec. 2.1); delta method dx = x dlog x.
     jtj = np.asarray(J.T @ J)
-    cond = float(np.linalg.cond(jtj))
-    cov_log = np.linalg.pinv(jtj)
+    if not np.all(np.isfinite(jtj)):  # a failed (throw=False) fit can end on NaN
+        cond, cov_log = np.inf, np.full_like(jtj, np.nan)
+    else:
+        cond = float(np.linalg.cond(jtj))
+        cov_log = np.linalg.pinv(jtj)
     logx = np.asarray(_to_log(theta, prob.lo, prob.hi))
     est = np.exp(logx)
     sigma, z = _unpack(theta, prob)
@@ -227,7 +252,7 @@ def _result(theta, prob: _Problem, labels, *, n_steps, n_forward, success, ill_c
     cov = cov_log * np.outer(est, est)
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     corr = cov / np.outer(se, se) if np.all(se > 0) else np.full_like(cov, np.nan)
-    if cond > ill_conditioned:
+    if np.isfinite(cond) and cond > ill_conditioned:
         warnings.warn(
             f"J^T J is ill-conditioned (cond {cond:.2g} > {ill_conditioned:.0g}): the data barely "
             f"separate {labels}; skull and scalp (and, in spheres, brain and CSF) trade off. Fix "
@@ -243,7 +268,8 @@ def fit_conductivities(model, protocol, measured, *, init, fit: Sequence[str] = 
                        contact_impedance: bool = False, noise_std=None,
                        bounds: Mapping[str, tuple[float, float]] | None = None,
                        solver=None, max_steps: int = 100, throw: bool = True,
-                       ill_conditioned: float = 1e8) -> FitResult:
+                       ill_conditioned: float = 1e8,
+                       approx_error: ApproximationError | None = None) -> FitResult:
     """Fit tissue conductivities to measured voltages by nonlinear least squares.
 
     Arguments:
@@ -268,13 +294,17 @@ def fit_conductivities(model, protocol, measured, *, init, fit: Sequence[str] = 
         max_steps: optimiser step limit.
         throw: raise when optimistix fails (else `success=False`).
         ill_conditioned: warn when cond(J^T J) exceeds this.
+        approx_error: an `ApproximationError` of `model` against a more accurate model of the
+            head (`jaxhead.approximation_error`): its mean is added to the model's
+            voltages and its covariance to the noise's, so residuals are whitened by
+            (diag(noise_std^2) + Cov)^-1/2 and standard errors include the modelling error.
 
     Returns:
         A `FitResult`.
     """
     prob, theta0, labels, measured = _prepare(
         model, protocol, measured, init=init, fit=fit, contact_impedance=contact_impedance,
-        noise_std=noise_std, bounds=bounds)
+        noise_std=noise_std, bounds=bounds, approx_error=approx_error)
     if measured.ndim != 1:
         raise ValueError(f"`measured` has shape {measured.shape}; pass (n_rows,) voltages "
                          "(use fit_conductivities_batch for several data vectors).")
@@ -292,7 +322,8 @@ def fit_conductivities(model, protocol, measured, *, init, fit: Sequence[str] = 
 def fit_conductivities_batch(model, protocol, measured, *, init,
                              fit: Sequence[str] = TISSUE_NAMES, contact_impedance: bool = False,
                              noise_std=None, bounds=None, solver=None, max_steps: int = 100,
-                             throw: bool = True, ill_conditioned: float = 1e8) -> list[FitResult]:
+                             throw: bool = True, ill_conditioned: float = 1e8,
+                             approx_error: ApproximationError | None = None) -> list[FitResult]:
     """Fit many data vectors (e.g. noise realisations) in one `vmap`ped optimistix solve.
 
     The same as calling `fit_conductivities` on each row of `measured` (same arguments, one
@@ -308,7 +339,7 @@ def fit_conductivities_batch(model, protocol, measured, *, init,
     """
     prob, theta0, labels, measured = _prepare(
         model, protocol, measured, init=init, fit=fit, contact_impedance=contact_impedance,
-        noise_std=noise_std, bounds=bounds)
+        noise_std=noise_std, bounds=bounds, approx_error=approx_error)
     if measured.ndim != 2 or measured.shape[0] < 1:
         raise ValueError(f"`measured` has shape {measured.shape}; pass (n_batch, n_rows).")
     handle, count0 = _factor_count(model)

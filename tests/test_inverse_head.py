@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from jaxhead.approx_error import approximation_error, sample_conductivities
 from jaxhead.electrodes import place_electrodes, spread_positions
 from jaxhead.fem import build_forward_model
 from jaxhead.fem import simulate
@@ -104,15 +105,25 @@ def test_fit_recovers_head_conductivities_same_mesh(head):
     assert np.all(err[[0, 1, 3]] < 0.02) and err[2] < 0.10, err
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "known gap (issue 5 report): the reconstruction mesh's voltages differ from the data "
-    "mesh's by 4 % (8x the noise), and the fit absorbs that modelling error into the "
-    "conductivities (measured with Levenberg-Marquardt: brain +164 %, CSF -76 %, skull +42 %, "
-    "scalp +98 %, not converged in 40 steps)"))
 def test_fit_recovers_head_conductivities_from_other_mesh(head):
-    res, err = _fit(head["model"], head["data_model"], head["protocol"])
-    assert res.success
-    assert np.all(err[[0, 1, 3]] < 0.02) and err[2] < 0.10, err
+    # Data from the finer mesh, fitted on the coarser one. The plain fit absorbs the 4 % voltage
+    # mismatch into the conductivities (measured with Levenberg-Marquardt: brain +164 %,
+    # CSF -76 %, not converged); the approximation-error model of the fit mesh against the finer
+    # one, from 20 prior draws (not the true conductivities), removes that bias. Here the finer
+    # mesh both makes the data and stands for the head in the error model, as in the
+    # approximation-error literature's simulations; experiments/cross_mesh_fit.py also estimates
+    # it on a third mesh that did not make the data.
+    ae = approximation_error(head["data_model"], head["model"], head["protocol"],
+                             sample_conductivities(20, seed=7))
+    v = np.asarray(simulate(head["data_model"], TRUE, head["protocol"]))
+    for seed in (0, 1):
+        res = fit_conductivities(head["model"], head["protocol"], add_noise(v, 0.5, seed=seed),
+                                 init=SIGMA, noise_std=noise_std(v, 0.5), approx_error=ae,
+                                 solver=LineSearchGaussNewton(rtol=1e-6, atol=1e-6))
+        err = np.abs(res.sigma / TRUE - 1)
+        print(res.table(TRUE), "\nrelative errors (brain, csf, skull, scalp):", err)
+        assert res.success
+        assert np.all(err[[0, 1, 3]] < 0.02) and err[2] < 0.10, err
 
 
 @pytest.mark.xfail(strict=True, reason=(
