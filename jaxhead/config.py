@@ -107,8 +107,14 @@ class InverseConfig:
         noise_percent: Gaussian noise per channel, % of the baseline voltage (the seed paper: 0.5).
         cell_mm: reconstruction grid cell size (mm; the Jacobian is summed into brain cells).
         method: "tsvd" or "tikhonov" (truncation / lambda chosen by GCV).
-        fit: also fit the four tissue conductivities to noisy simulated voltages.
+        fit: also fit the four tissue conductivities: to `measured_path`'s voltages when given,
+            else to noisy simulated ones.
         fit_init_s_m: the fit's starting conductivities (brain, csf, skull, scalp).
+        measured_path: measured voltages for the fit (`jaxhead.protocol.load_voltages`: five
+            columns source, sink, meas+, meas-, volts with 1-based electrodes, as the forward
+            stage's voltages.csv, or one column of volts in protocol order); the rows must be
+            the configured protocol's. `noise_percent` of each measured voltage is the fit's
+            noise model.
         seed: noise seed.
     """
 
@@ -120,6 +126,7 @@ class InverseConfig:
     method: Literal["tsvd", "tikhonov"] = "tsvd"
     fit: bool = True
     fit_init_s_m: tuple[float, float, float, float] = (0.2, 1.0, 0.03, 0.3)
+    measured_path: str | None = None
     seed: int = 0
 
     def __post_init__(self):
@@ -130,6 +137,10 @@ class InverseConfig:
             raise ValueError(f"[inverse] `rel_change` must be > -1, got {self.rel_change}.")
         if not self.noise_percent >= 0:
             raise ValueError(f"[inverse] `noise_percent` must be >= 0, got {self.noise_percent}.")
+        if self.measured_path is not None and not Path(self.measured_path).is_file():
+            raise ValueError(f"[inverse] `measured_path` = {self.measured_path!r} is not a file "
+                             f"(relative paths are relative to the current directory, "
+                             f"{Path.cwd()}).")
 
 
 @dataclass(frozen=True, kw_only=True)

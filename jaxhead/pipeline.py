@@ -56,10 +56,35 @@ def _jsonable(obj):
 STAGE_READS = {"mesh": ("electrodes",), "forward": ("electrodes", "protocol")}
 
 
+def _file_digests(obj) -> dict[str, str]:
+    """sha256 of every existing file a `*_path` (or `path`) field names, by path."""
+    out = {}
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            if (k == "path" or k.endswith("_path")) and isinstance(v, str) and Path(v).is_file():
+                h = hashlib.sha256()
+                with open(v, "rb") as f:
+                    for block in iter(lambda: f.read(1 << 20), b""):
+                        h.update(block)
+                out[v] = h.hexdigest()
+            else:
+                out.update(_file_digests(v))
+    elif isinstance(obj, list):
+        for v in obj:
+            out.update(_file_digests(v))
+    return out
+
+
 def stage_hash(cfg: RunConfig, stage: str, previous: str) -> str:
-    """Hash of the config sections a stage reads, chained with the previous stage's hash."""
-    sections = [getattr(cfg, name, None) for name in (stage, *STAGE_READS.get(stage, ()))]
-    payload = json.dumps([previous, stage, _jsonable(sections)], sort_keys=True, default=str)
+    """Hash of the config sections a stage reads, chained with the previous stage's hash.
+
+    Files the sections name (`path`, `labels_path`, `measured_path`) enter by content, so a
+    changed file reruns the stage that reads it (and every later one).
+    """
+    sections = _jsonable([getattr(cfg, name, None) for name in (stage, *STAGE_READS.get(stage, ()))])
+    digests = _file_digests(sections)  # left out when empty: hashes of file-free stages stay
+    payload = json.dumps([previous, stage, sections] + ([digests] if digests else []),
+                         sort_keys=True, default=str)
     return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
 

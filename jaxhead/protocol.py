@@ -128,24 +128,9 @@ class Protocol(eqx.Module):
             current_a: injected current in A; default: the file's comment, else 100 uA.
             one_based: indices in the file start at 1 (UCL/Matlab; default) or at 0.
         """
-        text = open(os.fspath(path), encoding="utf-8").read()
-        file_current, data = None, []
-        for lineno, line in enumerate(text.splitlines(), 1):
-            s = line.strip()
-            if not s:
-                continue
-            if s.startswith("#"):
-                key, _, val = s[1:].partition("=")
-                if key.strip() == "current_a":
-                    file_current = float(val)
-                continue
-            parts = [p for p in s.replace(",", " ").replace(";", " ").split()]
-            try:
-                vals = [float(p) for p in parts]
-            except ValueError:
-                if not data:  # header
-                    continue
-                raise ValueError(f"{path}:{lineno}: not numbers: {line!r}.") from None
+        lines, file_current = _read_table(path)
+        data = []
+        for lineno, vals, line in lines:
             if len(vals) != 4:
                 raise ValueError(f"{path}:{lineno}: expected 4 columns (source, sink, meas+, "
                                  f"meas-), got {len(vals)}: {line!r}.")
@@ -180,6 +165,105 @@ class Protocol(eqx.Module):
         with atomic_write_path(path) as tmp:
             with open(tmp, "w", encoding="utf-8") as f:
                 f.write(text)
+
+
+def _read_table(path) -> tuple[list[tuple[int, list[float], str]], float | None]:
+    """Numeric lines of a CSV/whitespace file: [(line number, values, text)], current_a comment.
+
+    Blank lines and ``#`` comments are skipped (``# current_a = <A>`` is returned); a
+    non-numeric line before the first numeric one is a header and skipped; one after it is an
+    error naming the line.
+    """
+    text = open(os.fspath(path), encoding="utf-8").read()
+    out, file_current = [], None
+    for lineno, line in enumerate(text.splitlines(), 1):
+        s = line.strip()
+        if not s:
+            continue
+        if s.startswith("#"):
+            key, _, val = s[1:].partition("=")
+            if key.strip() == "current_a":
+                file_current = float(val)
+            continue
+        try:
+            vals = [float(p) for p in s.replace(",", " ").replace(";", " ").split()]
+        except ValueError:
+            if not out:  # header
+                continue
+            raise ValueError(f"{path}:{lineno}: not numbers: {line!r}.") from None
+        out.append((lineno, vals, line))
+    return out, file_current
+
+
+def save_voltages(path, protocol: Protocol, volts, *, one_based: bool = True) -> None:
+    """Write measured or simulated voltages with their protocol rows, one row per line.
+
+    Columns source, sink, meas_plus, meas_minus (1-based by default, as `Protocol.to_csv`),
+    volts; a ``# current_a = ...`` comment line first. `load_voltages` reads it back.
+
+    Arguments:
+        path: output file (written atomically).
+        protocol: the `Protocol` the voltages belong to.
+        volts: (n_rows,) voltages in V, in protocol order.
+        one_based: electrode indices from 1 (default) or 0.
+    """
+    from .io import atomic_write_path
+
+    v = np.asarray(volts, dtype=np.float64)
+    if v.shape != (protocol.n_rows,):
+        raise ValueError(f"`volts` has shape {v.shape}; the protocol has {protocol.n_rows} rows.")
+    rows = protocol.rows + (1 if one_based else 0)
+    body = "\n".join(",".join(str(int(i)) for i in r) + f",{x:.9e}" for r, x in zip(rows, v))
+    with atomic_write_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(f"# current_a = {protocol.current_a!r}\n{_HEADER},volts\n{body}\n")
+
+
+def load_voltages(path, protocol: Protocol, *, one_based: bool = True) -> np.ndarray:
+    """Read voltages for `protocol` from a CSV (or whitespace) file.
+
+    Either five columns, source, sink, meas+, meas-, volts (as `save_voltages` and the forward
+    stage's voltages.csv write), whose electrode columns must match the protocol's rows line by
+    line, or one column of volts in protocol order. A header line and ``#`` comments are
+    skipped; a ``# current_a = ...`` comment must agree with the protocol's current.
+
+    Arguments:
+        path: the file.
+        protocol: the `Protocol` the voltages were measured with.
+        one_based: the file's electrode indices start at 1 (default) or 0.
+
+    Returns:
+        (n_rows,) float64 voltages in V.
+    """
+    lines, file_current = _read_table(path)
+    data = []
+    for lineno, vals, line in lines:
+        if len(vals) not in (1, 5) or (data and len(vals) != len(data[0][1])):
+            raise ValueError(f"{path}:{lineno}: expected 5 columns (source, sink, meas+, meas-, "
+                             f"volts) or 1 (volts) on every line, got {len(vals)}: {line!r}.")
+        data.append((lineno, vals))
+    if len(data) != protocol.n_rows:
+        raise ValueError(f"{path}: {len(data)} voltages, but the protocol has {protocol.n_rows} "
+                         "rows; measure (or simulate) with the configured protocol.")
+    if file_current is not None and not math.isclose(file_current, protocol.current_a,
+                                                     rel_tol=1e-9):
+        raise ValueError(f"{path}: current_a = {file_current} A, but the protocol injects "
+                         f"{protocol.current_a} A; set the protocol's current to the file's.")
+    table = np.asarray([vals for _, vals in data], dtype=np.float64)
+    if table.shape[1] == 5:
+        want = protocol.rows + (1 if one_based else 0)
+        bad = np.flatnonzero(np.any(table[:, :4] != want, axis=1))
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(
+                f"{path}:{data[i][0]}: electrodes {table[i, :4].astype(int).tolist()} differ from "
+                f"protocol row {i} {want[i].tolist()} ({bad.size} rows differ; indices are "
+                f"{'1' if one_based else '0'}-based); reorder the file to the protocol.")
+    volts = table[:, -1]
+    if not np.all(np.isfinite(volts)):
+        raise ValueError(f"{path}: voltages contain NaN or Inf (line "
+                         f"{data[int(np.flatnonzero(~np.isfinite(volts))[0])][0]}).")
+    return volts
 
 
 def _adjacent_meas(n_elec: int, exclude) -> list[tuple[int, int]]:

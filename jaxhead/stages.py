@@ -195,15 +195,14 @@ def run_forward(cfg: RunConfig, subject: Subject) -> dict:
 
     from .fem import potentials, simulate
     from .plot import plot_scalp_potential
+    from .protocol import save_voltages
 
     mesh, electrodes, protocol, model = _forward_model(cfg, subject)
     sigma = cfg.forward.sigma()
     volts = np.asarray(simulate(model, sigma, protocol))
     out = subject.dir("forward")
     rows = np.asarray(protocol.rows)
-    table = ["source,sink,meas_plus,meas_minus,volts"] + [
-        f"{r[0]},{r[1]},{r[2]},{r[3]},{v:.9e}" for r, v in zip(rows, volts)]
-    _write_text(out / "voltages.csv", "\n".join(table) + "\n")
+    save_voltages(out / "voltages.csv", protocol, volts)  # 1-based, as protocol.csv
     cen = np.asarray(electrodes.centres)
     _write_text(out / "electrodes.csv", "name,x_mm,y_mm,z_mm\n" + "".join(
         f"{n},{c[0]:.3f},{c[1]:.3f},{c[2]:.3f}\n" for n, c in zip(electrodes.names, cen)))
@@ -255,6 +254,7 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
                           jacobian_grid, make_grid, noise_std, reconstruct,
                           spherical_perturbation)
     from .plot import plot_image_cut
+    from .protocol import load_voltages
 
     c = cfg.inverse
     seconds = {}
@@ -306,16 +306,26 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
                "volume_ratio": m.volume_ratio, "n_cells": grid.n_cells}
     if c.fit:
         t0 = time.perf_counter()
-        measured = add_noise(v0, c.noise_percent, seed=c.seed + 1)
-        fit_std = noise_std(v0, c.noise_percent) if c.noise_percent > 0 else None
+        if c.measured_path is None:  # noisy simulated voltages at the [forward] conductivities
+            measured = add_noise(v0, c.noise_percent, seed=c.seed + 1)
+            reference = v0
+        else:
+            measured = load_voltages(c.measured_path, protocol)
+            reference = measured
+        fit_std = noise_std(reference, c.noise_percent) if c.noise_percent > 0 else None
         res = fit_conductivities(model, protocol, measured, init=np.asarray(c.fit_init_s_m),
                                  noise_std=fit_std,
                                  solver=LineSearchGaussNewton(rtol=1e-6, atol=1e-6),
                                  max_steps=50, throw=False)
-        table = res.table() + "\n\ntrue (S/m): " + ", ".join(f"{v:g}" for v in sigma) + "\n"
+        if c.measured_path is None:
+            table = (res.table(sigma) + "\n\ndata: simulated at the [forward] conductivities, "
+                     f"{c.noise_percent} % noise\n")
+            summary["fit_rel_error"] = (res.sigma / sigma - 1).tolist()
+        else:
+            table = res.table() + f"\n\ndata: {c.measured_path}\n"
         _write_text(out / "fit.txt", table)
         summary["fit_sigma"] = res.sigma.tolist()
-        summary["fit_rel_error"] = (res.sigma / sigma - 1).tolist()
+        summary["fit_std_error"] = res.std_error.tolist()
         summary["fit_n_forward"] = res.n_forward
         summary["fit_n_steps"] = res.n_steps
         summary["fit_converged"] = res.success

@@ -4,7 +4,8 @@ import jax
 import numpy as np
 import pytest
 
-from jaxhead.protocol import DEFAULT_CURRENT_A, Protocol, adjacent, opposite, pair_drive
+from jaxhead.protocol import (DEFAULT_CURRENT_A, Protocol, adjacent, load_voltages, opposite,
+                              pair_drive, save_voltages)
 
 
 def _valid(p: Protocol, n: int):
@@ -168,3 +169,42 @@ def test_protocol_config(tmp_path):
                       (dict(kind="pair", source=3, sink=3), "both 3")):
         with pytest.raises(ValueError, match=match):
             ProtocolConfig(**kw)
+
+
+@pytest.mark.parametrize("one_based", [True, False])
+def test_voltages_round_trip(tmp_path, one_based):
+    p = adjacent(8)
+    v = np.random.default_rng(0).standard_normal(p.n_rows) * 1e-3
+    save_voltages(tmp_path / "v.csv", p, v, one_based=one_based)
+    np.testing.assert_allclose(load_voltages(tmp_path / "v.csv", p, one_based=one_based), v,
+                               rtol=1e-9)
+    # A plain column of volts in protocol order reads the same.
+    np.savetxt(tmp_path / "col.txt", v)
+    np.testing.assert_allclose(load_voltages(tmp_path / "col.txt", p), v, rtol=1e-15)
+
+
+def test_voltages_errors(tmp_path):
+    p = adjacent(8)
+    v = np.linspace(1e-3, 2e-3, p.n_rows)
+    with pytest.raises(ValueError, match="`volts` has shape"):
+        save_voltages(tmp_path / "x.csv", p, v[:-1])
+    save_voltages(tmp_path / "v.csv", p, v)
+    lines = (tmp_path / "v.csv").read_text().splitlines()
+    # Rows out of protocol order: named by line and row, never reordered silently.
+    swapped = lines[:2] + [lines[3], lines[2]] + lines[4:]
+    (tmp_path / "s.csv").write_text("\n".join(swapped))
+    with pytest.raises(ValueError, match=r"s.csv:3: electrodes .* differ from protocol row 0"):
+        load_voltages(tmp_path / "s.csv", p)
+    (tmp_path / "short.csv").write_text("\n".join(lines[:-1]))
+    with pytest.raises(ValueError, match=f"the protocol has {p.n_rows} rows"):
+        load_voltages(tmp_path / "short.csv", p)
+    (tmp_path / "cur.csv").write_text("\n".join(["# current_a = 0.001"] + lines[1:]))
+    with pytest.raises(ValueError, match="current_a"):
+        load_voltages(tmp_path / "cur.csv", p)
+    (tmp_path / "nan.csv").write_text("\n".join(lines[:2] + [lines[2].rsplit(",", 1)[0] + ",nan"]
+                                               + lines[3:]))
+    with pytest.raises(ValueError, match="NaN"):
+        load_voltages(tmp_path / "nan.csv", p)
+    (tmp_path / "cols.csv").write_text("\n".join(lines[:2] + ["1,2,3,0.5"] + lines[3:]))
+    with pytest.raises(ValueError, match="expected 5 columns"):
+        load_voltages(tmp_path / "cols.csv", p)

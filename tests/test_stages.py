@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from jaxhead import save_mesh
 from jaxhead.config import (ElectrodeConfig, ForwardConfig, InputConfig, InverseConfig,
@@ -27,7 +28,7 @@ def test_forward_and_inverse_stages(tmp_path):
     )
     res = run_pipeline(cfg, progress=lambda s: None)
     out = tmp_path / "run/mri"
-    rows = np.loadtxt(out / "forward/voltages.csv", delimiter=",", skiprows=1)
+    rows = np.loadtxt(out / "forward/voltages.csv", delimiter=",", skiprows=2)  # comment, header
     assert rows.shape == (res["mri"]["forward"]["n_rows"], 5)
     # The forward stage used the configured skull conductivity, the defaults elsewhere.
     from jaxhead.electrodes import place_electrodes, spread_positions
@@ -47,3 +48,37 @@ def test_forward_and_inverse_stages(tmp_path):
     assert (out / "inverse/fit.txt").exists() and inv["fit_n_forward"] >= 2, inv
     assert np.all(np.isfinite(inv["fit_rel_error"])) and set(inv["seconds"]) >= {
         "jacobian_grid", "reconstruct", "fit"}, inv
+
+
+def test_inverse_stage_fits_measured_voltages(tmp_path):
+    # Voltages written by the forward stage (skull 0.02 S/m) come back as "measured" data: the
+    # fit recovers the conductivities that made them, and a changed file reruns the stage.
+    mesh = structured_sphere_mesh(h_mm=20.0)
+    (tmp_path / "run/mri/mesh").mkdir(parents=True)
+    save_mesh(mesh, tmp_path / "run/mri/mesh/mesh.vtu")
+    common = dict(out_dir=str(tmp_path / "run"), input=InputConfig(modalities=("mri",)),
+                  electrodes=ElectrodeConfig(layout=16, radius_mm=8.0),
+                  protocol=ProtocolConfig(kind="opposite"),
+                  forward=ForwardConfig(sigma_s_m={"skull": 0.02}))
+    run_pipeline(RunConfig(stages=("forward",), **common), progress=lambda s: None)
+    measured = tmp_path / "measured.csv"
+    measured.write_text((tmp_path / "run/mri/forward/voltages.csv").read_text())
+    cfg = RunConfig(stages=("forward", "inverse"), **common,
+                    inverse=InverseConfig(cell_mm=15.0, measured_path=str(measured)))
+    inv = run_pipeline(cfg, progress=lambda s: None)["mri"]["inverse"]
+    np.testing.assert_allclose(inv["fit_sigma"], [0.3, 1.79, 0.02, 0.44], rtol=1e-3)
+    assert "fit_rel_error" not in inv  # no truth for measured data
+    assert str(measured) in (tmp_path / "run/mri/inverse/fit.txt").read_text()
+    # Same file: up to date. Edited file (other voltages): the inverse stage runs again.
+    lines = []
+    assert run_pipeline(cfg, progress=lines.append)
+    assert any("inverse: up to date" in s for s in lines), lines
+    from jaxhead.protocol import load_voltages, opposite, save_voltages
+
+    p = opposite(16)
+    save_voltages(measured, p, 1.05 * load_voltages(measured, p))
+    lines = []
+    inv2 = run_pipeline(cfg, progress=lines.append)["mri"]["inverse"]
+    assert any("inverse: running" in s for s in lines) and inv2["fit_sigma"] != inv["fit_sigma"]
+    with pytest.raises(ValueError, match="measured_path"):
+        InverseConfig(measured_path=str(tmp_path / "missing.csv"))
