@@ -115,6 +115,12 @@ class InverseConfig:
             stage's voltages.csv, or one column of volts in protocol order); the rows must be
             the configured protocol's. `noise_percent` of each measured voltage is the fit's
             noise model.
+        approx_error_mesh: a finer mesh of the same head (e.g. a run's mesh.vtu at smaller
+            [mesh] edge_mm): the fit then uses the approximation-error model of this run's mesh
+            against it (`jaxhead.approximation_error`, same electrode centres and radius),
+            which removes the bias a coarse mesh puts into brain and CSF.
+        approx_error_draws: prior draws for that model (`jaxhead.sample_conductivities`
+            around the [forward] conductivities; each costs one solve on each mesh).
         seed: noise seed.
     """
 
@@ -127,6 +133,8 @@ class InverseConfig:
     fit: bool = True
     fit_init_s_m: tuple[float, float, float, float] = (0.2, 1.0, 0.03, 0.3)
     measured_path: str | None = None
+    approx_error_mesh: str | None = None
+    approx_error_draws: int = 20
     seed: int = 0
 
     def __post_init__(self):
@@ -137,10 +145,15 @@ class InverseConfig:
             raise ValueError(f"[inverse] `rel_change` must be > -1, got {self.rel_change}.")
         if not self.noise_percent >= 0:
             raise ValueError(f"[inverse] `noise_percent` must be >= 0, got {self.noise_percent}.")
-        if self.measured_path is not None and not Path(self.measured_path).is_file():
-            raise ValueError(f"[inverse] `measured_path` = {self.measured_path!r} is not a file "
-                             f"(relative paths are relative to the current directory, "
-                             f"{Path.cwd()}).")
+        for name in ("measured_path", "approx_error_mesh"):
+            value = getattr(self, name)
+            if value is not None and not Path(value).is_file():
+                raise ValueError(f"[inverse] `{name}` = {value!r} is not a file (relative paths "
+                                 f"are relative to the current directory, {Path.cwd()}).")
+        if isinstance(self.approx_error_draws, bool) or not isinstance(self.approx_error_draws, int) \
+                or self.approx_error_draws < 2:
+            raise ValueError("[inverse] `approx_error_draws` must be an integer >= 2, got "
+                             f"{self.approx_error_draws!r}.")
 
 
 @dataclass(frozen=True, kw_only=True)

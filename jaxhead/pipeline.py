@@ -52,8 +52,10 @@ def _jsonable(obj):
     return obj
 
 
-#: Config sections a stage reads besides its own (the mesh is refined under the electrodes).
-STAGE_READS = {"mesh": ("electrodes",), "forward": ("electrodes", "protocol")}
+#: Config sections a stage reads besides its own (the mesh is refined under the electrodes;
+#: the inverse stage rebuilds the forward model, so it reads what the forward stage reads).
+STAGE_READS = {"mesh": ("electrodes",), "forward": ("electrodes", "protocol"),
+               "inverse": ("forward", "electrodes", "protocol")}
 
 
 def _file_digests(obj) -> dict[str, str]:

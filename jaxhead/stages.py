@@ -313,16 +313,27 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
             measured = load_voltages(c.measured_path, protocol)
             reference = measured
         fit_std = noise_std(reference, c.noise_percent) if c.noise_percent > 0 else None
+        ae = None
+        if c.approx_error_mesh is not None:
+            ae = _approx_error(cfg, electrodes, model, protocol, sigma)
+            summary["approx_error_rel"] = float(np.linalg.norm(ae.mean) / np.linalg.norm(v0))
+            seconds["approx_error"] = time.perf_counter() - t0
         res = fit_conductivities(model, protocol, measured, init=np.asarray(c.fit_init_s_m),
-                                 noise_std=fit_std,
+                                 noise_std=fit_std, approx_error=ae,
                                  solver=LineSearchGaussNewton(rtol=1e-6, atol=1e-6),
                                  max_steps=50, throw=False)
+        if ae is not None:
+            table = (f"approximation-error model against {c.approx_error_mesh} "
+                     f"({c.approx_error_draws} draws; mean error "
+                     f"{100 * summary['approx_error_rel']:.2f} % of the voltages)\n\n")
+        else:
+            table = ""
         if c.measured_path is None:
-            table = (res.table(sigma) + "\n\ndata: simulated at the [forward] conductivities, "
+            table += (res.table(sigma) + "\n\ndata: simulated at the [forward] conductivities, "
                      f"{c.noise_percent} % noise\n")
             summary["fit_rel_error"] = (res.sigma / sigma - 1).tolist()
         else:
-            table = res.table() + f"\n\ndata: {c.measured_path}\n"
+            table += res.table() + f"\n\ndata: {c.measured_path}\n"
         _write_text(out / "fit.txt", table)
         summary["fit_sigma"] = res.sigma.tolist()
         summary["fit_std_error"] = res.std_error.tolist()
@@ -332,6 +343,24 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
         seconds["fit"] = time.perf_counter() - t0
     summary["seconds"] = seconds
     return summary
+
+
+def _approx_error(cfg: RunConfig, electrodes, model, protocol, sigma):
+    """The approximation-error model of a run's mesh against `[inverse] approx_error_mesh`."""
+    from . import io
+    from .approx_error import approximation_error, sample_conductivities
+    from .electrodes import place_electrodes
+    from .fem import build_forward_model
+
+    fine = io.load_mesh(cfg.inverse.approx_error_mesh)
+    fine_el = place_electrodes(fine, electrodes.centres, radius_mm=cfg.electrodes.radius_mm,
+                               contact_impedance=cfg.electrodes.contact_impedance_ohm_m2,
+                               names=list(electrodes.names),
+                               max_distance_mm=cfg.electrodes.max_distance_mm)
+    accurate = build_forward_model(fine, fine_el, solver=_solver(cfg.forward.solver))
+    draws = sample_conductivities(cfg.inverse.approx_error_draws, centre=sigma,
+                                  seed=cfg.inverse.seed + 2)
+    return approximation_error(accurate, model, protocol, draws)
 
 
 def _solver(name: str):

@@ -82,3 +82,40 @@ def test_inverse_stage_fits_measured_voltages(tmp_path):
     assert any("inverse: running" in s for s in lines) and inv2["fit_sigma"] != inv["fit_sigma"]
     with pytest.raises(ValueError, match="measured_path"):
         InverseConfig(measured_path=str(tmp_path / "missing.csv"))
+
+
+def test_inverse_stage_fit_with_the_approximation_error(tmp_path):
+    # Measured voltages from a finer mesh (9 mm grid) at skull 0.02 S/m, fitted on the run's
+    # 18 mm mesh: the approximation-error model against the finer mesh, configured by path,
+    # takes the fit from a biased one to the truth (tests/test_approx_error.py has the algebra).
+    from jaxhead.electrodes import place_electrodes, spread_positions
+    from jaxhead.fem import build_forward_model, simulate
+    from jaxhead.protocol import opposite, save_voltages
+
+    coarse, fine = structured_sphere_mesh(h_mm=18.0), structured_sphere_mesh(h_mm=9.0)
+    (tmp_path / "run/mri/mesh").mkdir(parents=True)
+    save_mesh(coarse, tmp_path / "run/mri/mesh/mesh.vtu")
+    save_mesh(fine, tmp_path / "fine.vtu")
+    truth = np.array([0.3, 1.79, 0.02, 0.44])
+    el = place_electrodes(fine, spread_positions(coarse, 16), radius_mm=10.0)
+    p = opposite(16)
+    save_voltages(tmp_path / "measured.csv", p,
+                  np.asarray(simulate(build_forward_model(fine, el), truth, p)))
+    fits = {}
+    for ae_mesh in (None, str(tmp_path / "fine.vtu")):
+        cfg = RunConfig(
+            out_dir=str(tmp_path / "run"), stages=("inverse",),
+            input=InputConfig(modalities=("mri",)),
+            electrodes=ElectrodeConfig(layout=16, radius_mm=10.0),
+            protocol=ProtocolConfig(kind="opposite"),
+            inverse=InverseConfig(cell_mm=15.0, measured_path=str(tmp_path / "measured.csv"),
+                                  approx_error_mesh=ae_mesh))
+        fits[ae_mesh] = run_pipeline(cfg, progress=lambda s: None)["mri"]["inverse"]
+    plain, corrected = fits[None], fits[str(tmp_path / "fine.vtu")]
+    err_plain = np.abs(np.asarray(plain["fit_sigma"]) / truth - 1)
+    err = np.abs(np.asarray(corrected["fit_sigma"]) / truth - 1)
+    print("plain", err_plain, "with the error model", err)
+    assert corrected["approx_error_rel"] > 0.01 and "approx_error" in corrected["seconds"]
+    assert np.max(err_plain) > 0.05, err_plain
+    assert np.all(err < 0.03), err  # measured: 0.3 / 0.8 / 0.04 / 0.03 %
+    assert "approximation-error model" in (tmp_path / "run/mri/inverse/fit.txt").read_text()
