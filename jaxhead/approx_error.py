@@ -60,7 +60,7 @@ class ApproximationError(eqx.Module):
 
         With D = diag(noise_std) and A = D^-1 deviations.T = Q S R^T (thin SVD), the total
         covariance is D (I + A A^T) D, and W = (I + A A^T)^(-1/2) D^-1 = (I + Q diag(c) Q^T) D^-1
-        with c = (1 + s^2)^(-1/2) - 1: exact, symmetric, and O(n_rows n_samples) to apply.
+        with c = (1 + s^2)^(-1/2) - 1: exact, and O(n_rows n_samples) to apply.
 
         Arguments:
             noise_std: (n_rows,) or scalar measurement-noise standard deviation in V (> 0).

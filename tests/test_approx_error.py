@@ -30,7 +30,7 @@ def test_covariance_is_the_sample_covariance():
 
 
 def test_whitener_inverts_the_total_covariance():
-    # W^T W = (diag(std^2) + Cov)^-1 and W is symmetric, against a dense inverse.
+    # W^T W = (diag(std^2) + Cov)^-1 and W Gamma W^T = I, against a dense inverse.
     ae, _ = _random_error()
     std = np.random.default_rng(1).uniform(1e-4, 1e-3, 40)
     w, Q, c = ae.whitener(std)
