@@ -10,10 +10,12 @@ electrode-refined mesh B with the Gauss-Newton line search:
   AEM(C->B)  the approximation-error model (jaxhead.approximation_error) of B against C from 24
              conductivity draws (log-normal, log-sd 0.25 around the literature values), with the
              pure per-channel noise weights.
-With data from D the approximation-error model is estimated on a mesh that did not make the data.
+With data from D the approximation-error model is estimated on a mesh that did not make the data;
+there AEM(F->B) also uses F, surfaces at still finer edges (3/2/2.5/3 mm) meshed like C.
 Last, two truths far from the prior's centre, data from C, fitted with AEM(C->B).
 
-Usage: python experiments/cross_mesh_fit.py [MESH_DIR]   (default runs/mesh_convergence; ~25 min)
+Usage: python experiments/cross_mesh_fit.py [MESH_DIR]   (default runs/mesh_convergence; ~40 min,
++ ~40 min the first time to mesh D and F)
 """
 import os
 import sys
@@ -38,17 +40,20 @@ from jaxhead.tissue import default_sigma
 D = sys.argv[1] if len(sys.argv) > 1 else "runs/mesh_convergence"
 M = {k: load_mesh(f"{D}/{k}.vtu") for k in ("A_default", "B_refined", "C_fine_refined")}
 pos = spread_positions(M["A_default"], 32)  # as experiments/mesh_convergence.py
-path = f"{D}/D_independent.vtu"
-if not os.path.exists(path):
-    t = time.perf_counter()
-    _, labels = make_head("mri", voxel_mm=2.0, seed=0)
-    surfs = extract_surfaces(make_layers(labels), SurfaceConfig(
-        edge_mm={"brain": 4.0, "csf": 2.5, "skull": 3.0, "scalp": 4.0}))
-    save_mesh(tetrahedralize(surfs, MeshConfig(
-        edge_mm={"brain": 6.0, "csf": 2.5, "skull": 2.5, "scalp": 3.0},
-        refine_points_mm=tuple(map(tuple, pos)), refine_edge_mm=1.5, refine_radius_mm=8.0)), path)
-    print(f"meshed D in {time.perf_counter() - t:.0f} s", flush=True)
-M["D_independent"] = load_mesh(path)
+for name, surf_mm in (("D_independent", (4.0, 2.5, 3.0, 4.0)),
+                      ("F_finer_surfaces", (3.0, 2.0, 2.5, 3.0))):
+    path = f"{D}/{name}.vtu"
+    if not os.path.exists(path):
+        t = time.perf_counter()
+        _, labels = make_head("mri", voxel_mm=2.0, seed=0)
+        surfs = extract_surfaces(make_layers(labels), SurfaceConfig(
+            edge_mm=dict(zip(("brain", "csf", "skull", "scalp"), surf_mm))))
+        save_mesh(tetrahedralize(surfs, MeshConfig(
+            edge_mm={"brain": 6.0, "csf": 2.5, "skull": 2.5, "scalp": 3.0},
+            refine_points_mm=tuple(map(tuple, pos)), refine_edge_mm=1.5,
+            refine_radius_mm=8.0)), path)
+        print(f"meshed {name} in {time.perf_counter() - t:.0f} s", flush=True)
+    M[name] = load_mesh(path)
 print({k: m.n_tets for k, m in M.items()}, flush=True)
 
 rows = np.concatenate([pair_drive(32, i, (i + k) % 32).rows
@@ -58,11 +63,13 @@ S = default_sigma()
 TRUE = S * np.array([1.1, 0.9, 1.2, 0.95])
 mods = {k: build_forward_model(M[k], place_electrodes(M[k], pos, radius_mm=6.0),
                                solver=Direct(threads=2))
-        for k in ("B_refined", "C_fine_refined", "D_independent")}
+        for k in ("B_refined", "C_fine_refined", "D_independent", "F_finer_surfaces")}
 t = time.perf_counter()
 ae = approximation_error(mods["C_fine_refined"], mods["B_refined"], prot,
                          sample_conductivities(24, seed=12345))
 print(f"approximation error of B against C: 24 draws in {time.perf_counter() - t:.0f} s", flush=True)
+ae_F = approximation_error(mods["F_finer_surfaces"], mods["B_refined"], prot,
+                           sample_conductivities(24, seed=12345))
 solver = LineSearchGaussNewton(rtol=1e-6, atol=1e-6)
 
 
@@ -83,8 +90,11 @@ for data in ("C_fine_refined", "D_independent"):
     print(f"data {data}: mismatch to B at TRUE {mis:.4f}, after the AEM mean {mis_ae:.4f}", flush=True)
     for seed in (0, 1, 2):
         measured = add_noise(v, 0.5, seed=seed)
-        for name, kw in (("plain", dict(noise_std=noise_std(v, 0.5, floor=0.1))),
-                         ("AEM(C->B)", dict(noise_std=noise_std(v, 0.5), approx_error=ae))):
+        variants = [("plain", dict(noise_std=noise_std(v, 0.5, floor=0.1))),
+                    ("AEM(C->B)", dict(noise_std=noise_std(v, 0.5), approx_error=ae))]
+        if data == "D_independent":
+            variants.append(("AEM(F->B)", dict(noise_std=noise_std(v, 0.5), approx_error=ae_F)))
+        for name, kw in variants:
             t = time.perf_counter()
             res = fit_conductivities(mods["B_refined"], prot, measured, init=S, solver=solver,
                                      throw=False, **kw)
