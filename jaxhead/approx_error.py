@@ -12,6 +12,13 @@ the noise. The fit then models the data as V_reduced(sigma) + mean + e, with e's
 Gamma = diag(noise_std^2) + Cov(eps): the mean removes the systematic part and the covariance
 down-weights the channel patterns the reduced model cannot be trusted on.
 
+What it does not cover: errors the two models share. If the head's geometry differs from both
+(segmentation, surface extraction), that error stays, and the fit's standard errors, which now
+include only the modelled part, understate it. On the phantom head (experiments/cross_mesh_fit.py)
+the model removed a mesh-discretisation bias of 9 % in brain and CSF to below 0.2 %, but data
+from other surfaces of the same label map (voltages 0.8 % apart) still moved brain and CSF by
+13-55 % with standard errors of 0.1-0.4 %; skull and scalp stayed within 4 %.
+
 `approximation_error` builds the estimate (one solve per draw and model);
 `fit_conductivities(..., approx_error=...)` uses it. The accurate model is typically a refined
 mesh of the same head, meshed once; the estimate serves every fit on the reduced mesh with that
