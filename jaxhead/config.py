@@ -115,6 +115,11 @@ class InverseConfig:
             stage's voltages.csv, or one column of volts in protocol order); the rows must be
             the configured protocol's. `noise_percent` of each measured voltage is the fit's
             noise model.
+        noise_floor: the fit's noise refers to max(|V|, noise_floor * RMS(V)) per channel
+            (`jaxhead.inverse.noise_std`). 0 is the pure per-channel model. Measured data carry
+            modelling error the noise model does not, and channels with a near-zero standing
+            voltage then dominate: without the error model below, 0.1 turned a diverging
+            cross-mesh fit into one 9 % off in brain and CSF (experiments/cross_mesh_fit.py).
         approx_error_mesh: a finer mesh of the same head (e.g. a run's mesh.vtu at smaller
             [mesh] edge_mm): the fit then uses the approximation-error model of this run's mesh
             against it (`jaxhead.approximation_error`, same electrode centres and radius),
@@ -133,6 +138,7 @@ class InverseConfig:
     fit: bool = True
     fit_init_s_m: tuple[float, float, float, float] = (0.2, 1.0, 0.03, 0.3)
     measured_path: str | None = None
+    noise_floor: float = 0.0
     approx_error_mesh: str | None = None
     approx_error_draws: int = 20
     seed: int = 0
@@ -145,6 +151,8 @@ class InverseConfig:
             raise ValueError(f"[inverse] `rel_change` must be > -1, got {self.rel_change}.")
         if not self.noise_percent >= 0:
             raise ValueError(f"[inverse] `noise_percent` must be >= 0, got {self.noise_percent}.")
+        if not self.noise_floor >= 0:
+            raise ValueError(f"[inverse] `noise_floor` must be >= 0, got {self.noise_floor}.")
         for name in ("measured_path", "approx_error_mesh"):
             value = getattr(self, name)
             if value is not None and not Path(value).is_file():

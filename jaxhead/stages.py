@@ -312,7 +312,8 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
         else:
             measured = load_voltages(c.measured_path, protocol)
             reference = measured
-        fit_std = noise_std(reference, c.noise_percent) if c.noise_percent > 0 else None
+        fit_std = (noise_std(reference, c.noise_percent, floor=c.noise_floor)
+                   if c.noise_percent > 0 else None)
         ae = None
         if c.approx_error_mesh is not None:
             ae = _approx_error(cfg, electrodes, model, protocol, sigma)

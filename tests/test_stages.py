@@ -82,6 +82,10 @@ def test_inverse_stage_fits_measured_voltages(tmp_path):
     assert any("inverse: running" in s for s in lines) and inv2["fit_sigma"] != inv["fit_sigma"]
     with pytest.raises(ValueError, match="measured_path"):
         InverseConfig(measured_path=str(tmp_path / "missing.csv"))
+    with pytest.raises(ValueError, match="noise_floor"):
+        InverseConfig(noise_floor=-0.1)
+    with pytest.raises(ValueError, match="approx_error_draws"):
+        InverseConfig(approx_error_draws=1)
 
 
 def test_inverse_stage_fit_with_the_approximation_error(tmp_path):
