@@ -37,7 +37,8 @@ class FitResult(eqx.Module):
         estimates: (n_fit,) fitted values (S/m; Ohm m^2 for "contact_impedance", the mean
             over electrodes).
         std_error: (n_fit,) Gauss-Newton standard errors, same units as `estimates` (they assume
-            `noise_std` is the true per-channel noise standard deviation).
+            `noise_std`, plus an `approx_error`'s covariance when given, is the whole error:
+            modelling errors left out of both are not in them).
         correlation: (n_fit, n_fit) correlation matrix of the estimates.
         residual_norm: || W (V(sigma) + offset - measured) || at the optimum, W the whitening
             (1 / noise_std, with an `approx_error` its covariance too; offset its mean, else 0).
