@@ -3,9 +3,10 @@
 :func:`tetrahedralize` turns the four nested surfaces (``jaxhead.surface``) into a labelled
 four-tissue tet mesh: fTetWild (Hu, Schneider, Wang, Zorin, Panozzo 2020, "Fast Tetrahedral
 Meshing in the Wild", ACM TOG 39(4):117, through pytetwild) meshes all four surfaces at once
-with per-tissue sizes from a background sizing field; tets are labelled by the surfaces that
-contain them; then the worst tets are improved (``jaxhead._meshimprove``) with every interface
-node kept on its interface.
+with per-tissue sizes from a background sizing field (capped near each surface by that surface's
+own edge length, graded away from it); tets are labelled by the surfaces that contain them; then
+the worst tets are improved (``jaxhead._meshimprove``: node relocation, flips and edge splits
+inside one tissue) with every interface node kept on its interface.
 """
 
 import logging
@@ -224,10 +225,11 @@ class MeshConfig:
         max_opt_iterations: fTetWild's maximum optimisation passes.
         improve: volume-mesh improvement after fTetWild: "relocate" (smart smoothing of
             interior and interface nodes on the worst tets, interfaces kept on their surfaces,
-            see ``jaxhead._meshimprove``) or "none".
-        improve_iterations: at most this many rounds of improvement (each round moves the
-            nodes of the tets still below the target; it stops earlier when none is left or no
-            node moved). Rounds are cheap (only poor tets), so the cap is generous.
+            alternating with 2-3 / 3-2 flips and edge splits inside one tissue for the tets
+            smoothing cannot mend; see ``jaxhead._meshimprove``) or "none".
+        improve_iterations: at most this many rounds of relocation per cycle (each round moves
+            the nodes of the tets still below the target; it stops earlier when none is left or
+            no node moved). Rounds are cheap (only poor tets), so the cap is generous.
         threads: fTetWild threads (0: all cores).
     """
 
@@ -472,6 +474,22 @@ def _inside_count(surfs, Q) -> np.ndarray:
 
 _OUTSIDE_FACTOR = 4.0
 
+#: Near a surface the target edge is at most this many times the surface's own local edge
+#: (growing by `_SURFACE_GRADING` mm per mm away from it): fTetWild keeps every input triangle,
+#: and a tet whose base is such a triangle and whose apex sits much further away than the
+#: triangle is wide is a needle or a cap (scaled Jacobian far below the seed paper's 0.2).
+_SURFACE_EDGE_FACTOR = 1.5
+_SURFACE_GRADING = 0.5
+
+
+def _vertex_edge_mm(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Mean length of the edges at each vertex of a triangle mesh (mm)."""
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    length = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1)
+    total = np.bincount(e.ravel(), weights=np.repeat(length, 2), minlength=len(V))
+    count = np.bincount(e.ravel(), minlength=len(V))
+    return total / np.maximum(count, 1)
+
 
 def sizing_field(surfs, cfg: MeshConfig, spacing_mm: float):
     """Background grid of target edge lengths for fTetWild (its ``--bg-mesh``).
@@ -503,9 +521,12 @@ def sizing_field(surfs, cfg: MeshConfig, spacing_mm: float):
     from scipy.ndimage import minimum_filter
 
     h = minimum_filter(h, size=3, mode="nearest").transpose(2, 1, 0).ravel()
-    if cfg.refine_points_mm:
-        from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree
 
+    for V, F in surfs:
+        d, k = cKDTree(V).query(pts)
+        h = np.minimum(h, _SURFACE_EDGE_FACTOR * _vertex_edge_mm(V, F)[k] + _SURFACE_GRADING * d)
+    if cfg.refine_points_mm:
         d, _ = cKDTree(np.asarray(cfg.refine_points_mm)).query(pts)
         h = np.minimum(h, cfg.refine_edge_mm + cfg.refine_grading * np.maximum(d - cfg.refine_radius_mm, 0.0))
     tet = grid.to_tetrahedra()
@@ -742,8 +763,8 @@ def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -
         from ._meshimprove import improve_mesh
 
         t0 = time.perf_counter()
-        nodes, improvement = improve_mesh(nodes, tets, labels, [d.project for d in dists],
-                                          iterations=cfg.improve_iterations)
+        nodes, tets, labels, improvement = improve_mesh(
+            nodes, tets, labels, [d.project for d in dists], iterations=cfg.improve_iterations)
         seconds["improve"] = time.perf_counter() - t0
 
     mesh = TetMesh(nodes, tets, labels)

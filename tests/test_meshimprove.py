@@ -1,0 +1,174 @@
+"""Mesh improvement: 2-3 / 3-2 flips and edge splits keep tissues and interfaces, take the better
+configuration, and the sizing field follows the surfaces' own edges."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from jaxhead._meshimprove import _flip_pass, _split_pass, tet_quality
+from jaxhead.mesh import (
+    _SURFACE_EDGE_FACTOR,
+    _SURFACE_GRADING,
+    MeshConfig,
+    _face_adjacency,
+    _vertex_edge_mm,
+    signed_volumes,
+    sizing_field,
+    tetrahedralize,
+)
+from jaxhead.surface import Surface
+from jaxhead.tissue import TISSUES
+
+
+def _bipyramid(h):
+    """Equilateral triangle (side 1) in z = 0 and apexes at +-h above its centroid."""
+    a = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, np.sqrt(3) / 2, 0.0]])
+    c = a.mean(axis=0)
+    nodes = np.vstack([a, c + [0, 0, h], c - [0, 0, h]])
+    two = np.array([[0, 1, 2, 3], [0, 2, 1, 4]])
+    three = np.array([[0, 1, 4, 3], [1, 2, 4, 3], [2, 0, 4, 3]])
+    return nodes, two, three
+
+
+def _faces(tets, labels):
+    """Boundary faces and faces between different labels, as sets of sorted node triples."""
+    faces, owner, i, j, boundary = _face_adjacency(tets)
+    key = lambda f: {tuple(sorted(x)) for x in f.tolist()}  # noqa: E731
+    iface = labels[owner[i]] != labels[owner[j]]
+    return key(faces[boundary]), key(faces[i[iface]])
+
+
+def _conforming(tets):
+    """Every face shared by at most two tets."""
+    k = np.sort(tets[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3), axis=1)
+    _, counts = np.unique(k, axis=0, return_counts=True)
+    return counts.max() <= 2
+
+
+def test_bipyramid_orientations():
+    nodes, two, three = _bipyramid(0.8)
+    assert np.all(signed_volumes(nodes, two) > 0)
+    assert np.all(signed_volumes(nodes, three) > 0)
+    assert signed_volumes(nodes, two).sum() == pytest.approx(signed_volumes(nodes, three).sum())
+
+
+@pytest.mark.parametrize("h", [0.05, 0.2, 0.5, 0.8, 1.5, 3.0])
+def test_flips_take_the_better_of_two_and_three_tets(h):
+    """From either configuration of the bipyramid, one pass ends in the one with the better worst
+    tet (compared here directly), with the same volume and the same outer faces."""
+    nodes, two, three = _bipyramid(h)
+    better = "two" if tet_quality(nodes, two).min() > tet_quality(nodes, three).min() else "three"
+    for name, tets in (("two", two), ("three", three)):
+        labels = np.full(len(tets), 2)
+        q = tet_quality(nodes, tets)
+        out, lab, q_out, n23, n32 = _flip_pass(nodes, tets, labels, q, target=1.0)
+        assert len(out) == len(two if better == "two" else three), (name, h)
+        assert (n23, n32) == ((1, 0) if (name, better) == ("two", "three") else
+                              (0, 1) if (name, better) == ("three", "two") else (0, 0))
+        assert np.all(signed_volumes(nodes, out) > 0)
+        assert signed_volumes(nodes, out).sum() == pytest.approx(signed_volumes(nodes, tets).sum())
+        assert _faces(out, lab)[0] == _faces(tets, labels)[0]
+        np.testing.assert_allclose(q_out, tet_quality(nodes, out))
+        assert np.all(lab == 2)
+
+
+def test_flips_never_cross_tissues():
+    """The same bipyramid with its tets in two tissues: no flip (it would move the interface)."""
+    for h in (0.05, 3.0):
+        nodes, two, three = _bipyramid(h)
+        for tets, labels in ((two, np.array([1, 2])), (three, np.array([1, 1, 2]))):
+            out, lab, _, n23, n32 = _flip_pass(nodes, tets, labels, tet_quality(nodes, tets), 1.0)
+            assert (n23, n32) == (0, 0) and np.array_equal(out, tets)
+
+
+def test_split_of_an_interior_edge():
+    """Six needles around a long axis (a closed ring): the axis is split at its midpoint, each tet
+    into two; volume and outer faces stay (relocation then shapes the tets around the new node)."""
+    k = 6
+    ang = 2 * np.pi * np.arange(k) / k
+    ring = np.stack([np.cos(ang), np.sin(ang), np.zeros(k)], axis=1)
+    nodes = np.vstack([ring, [[0, 0, 4.0], [0, 0, -4.0]]])
+    tets = np.array([[k + 1, k, i, (i + 1) % k] for i in range(k)])
+    from jaxhead.mesh import orient_tets
+
+    tets, _ = orient_tets(nodes, tets)
+    labels = np.full(k, 3)
+    q = tet_quality(nodes, tets)
+    n2, t2, l2, q2, n_split = _split_pass(nodes, tets, labels, q, target=1.0)
+    assert n_split == 1 and len(t2) == 2 * k and len(n2) == k + 3
+    np.testing.assert_allclose(n2[-1], [0, 0, 0])  # the axis's midpoint
+    assert np.all(signed_volumes(n2, t2) > 0)
+    assert signed_volumes(n2, t2).sum() == pytest.approx(signed_volumes(nodes, tets).sum())
+    assert _faces(t2, l2)[0] == _faces(tets, labels)[0]
+    np.testing.assert_allclose(q2, tet_quality(n2, t2))
+
+
+def test_split_skips_open_rings():
+    """A boundary edge (open ring) is never split: its midpoint would dent the boundary."""
+    nodes, two, _ = _bipyramid(3.0)
+    labels = np.array([1, 1])
+    out = _split_pass(nodes, two, labels, tet_quality(nodes, two), target=1.0)
+    assert out[-1] == 0
+
+
+def _spheres(radii=(8.0, 10.0, 12.0, 14.0), subdiv=3):
+    return {t: Surface(*map(np.asarray, (lambda s: (s.vertices, s.faces))(
+        trimesh.creation.icosphere(subdivisions=subdiv, radius=r))), t) for t, r in zip(TISSUES, radii)}
+
+
+@pytest.fixture(scope="module")
+def raw_mesh():
+    """fTetWild's labelled sphere mesh without improvement (some tets below the target)."""
+    cfg = MeshConfig(edge_mm=4.0, threads=1, stop_energy=30.0, max_opt_iterations=5, improve="none")
+    m = tetrahedralize(_spheres(), cfg)
+    return np.asarray(m.nodes), np.asarray(m.tets), np.asarray(m.labels)
+
+
+def test_passes_keep_tissues_and_interfaces_on_a_mesh(raw_mesh):
+    """Flips and splits at a high target (most tets 'poor'): the tissue volumes, the boundary and
+    every interface face are exactly those of the input; the mesh stays conforming and positive."""
+    nodes, tets, labels = raw_mesh
+    vol = {t: signed_volumes(nodes, tets[labels == int(t)]).sum() for t in TISSUES}
+    faces = _faces(tets, labels)
+    q = tet_quality(nodes, tets)
+    t1, l1, q1, n23, n32 = _flip_pass(nodes, tets, labels, q, target=0.5)
+    assert n23 + n32 > 0  # (3-2 flips are rare in fTetWild meshes; the bipyramid tests them)
+    assert len(t1) == len(tets) + n23 - n32
+    n2, t2, l2, q2, n_split = _split_pass(nodes, t1, l1, q1, target=0.5)
+    assert n_split > 0
+    for n_, t_, l_, q_ in ((nodes, t1, l1, q1), (n2, t2, l2, q2)):
+        assert np.all(signed_volumes(n_, t_) > 0)
+        assert _conforming(t_)
+        assert _faces(t_, l_) == faces
+        np.testing.assert_allclose(q_, tet_quality(n_, t_))
+        for t in TISSUES:
+            assert signed_volumes(n_, t_[l_ == int(t)]).sum() == pytest.approx(vol[t], rel=1e-12)
+    # Flips only take gains: the worst tet of the mesh never gets worse.
+    assert q1.min() >= q.min()
+
+
+def test_sizing_field_follows_surface_edges():
+    """Near a surface finer than the tissue's edge, the target edge is at most 1.5 x the surface's
+    own edge plus the grading times the distance (checked against every vertex, brute force)."""
+    surfs = [(s.vertices, s.faces) for s in _spheres(subdiv=3).values()]
+    cfg = MeshConfig(edge_mm=6.0)
+    pts, _, h = sizing_field(surfs, cfg, spacing_mm=1.0)
+    assert h.max() > 6.0  # outside the head: coarser
+    r = np.linalg.norm(pts, axis=1)
+    sample = np.random.default_rng(0).permutation(np.nonzero(r < 16.0)[0])[:3000]
+    pts, h = pts[sample], h[sample]
+    for V, F in surfs:
+        e = _vertex_edge_mm(V, F)
+        near = np.linalg.norm(pts[:, None] - V[None], axis=2)
+        d_min = near.min(axis=1)
+        close = d_min < 1.0
+        bound = (_SURFACE_EDGE_FACTOR * e[near.argmin(axis=1)] + _SURFACE_GRADING * d_min)[close]
+        assert np.all(h[close] <= bound + 1e-12)
+        assert np.all(h[close] < 6.0)
+    # Per-vertex mean edge, against trimesh's unique edges.
+    V, F = surfs[0]
+    mesh = trimesh.Trimesh(V, F, process=False)
+    length = mesh.edges_unique_length
+    total = np.bincount(mesh.edges_unique.ravel(), weights=np.repeat(length, 2), minlength=len(V))
+    counts = np.bincount(mesh.edges_unique.ravel(), minlength=len(V))
+    np.testing.assert_allclose(_vertex_edge_mm(V, F), total / counts)
