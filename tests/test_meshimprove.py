@@ -172,3 +172,30 @@ def test_sizing_field_follows_surface_edges():
     total = np.bincount(mesh.edges_unique.ravel(), weights=np.repeat(length, 2), minlength=len(V))
     counts = np.bincount(mesh.edges_unique.ravel(), minlength=len(V))
     np.testing.assert_allclose(_vertex_edge_mm(V, F), total / counts)
+
+
+def test_improve_mesh_never_worse_and_keeps_interfaces(raw_mesh):
+    """The whole improvement on fTetWild's raw sphere mesh: no more tets below the Table-2 limit
+    and no lower worst quality than the input; labels' tissues kept; every interface node on
+    its input surface as far as it was (relocated ones exactly), and the boundary node set kept."""
+    from jaxhead._meshimprove import LIMIT, classify_nodes, improve_mesh
+    from jaxhead.mesh import _check_surfaces, _Dist
+
+    nodes, tets, labels = raw_mesh
+    dists = [_Dist(V, F) for V, F in _check_surfaces(_spheres())]
+    n2, t2, l2, stats = improve_mesh(nodes, tets, labels, [d.project for d in dists], iterations=10)
+    q0, q2 = tet_quality(nodes, tets), tet_quality(n2, t2)
+    assert stats["below_0.2_before"] == (q0 < LIMIT).sum() and stats["below_0.2_after"] == (q2 < LIMIT).sum()
+    assert (q2 < LIMIT).sum() <= (q0 < LIMIT).sum() and q2.min() >= q0.min()
+    assert np.all(signed_volumes(n2, t2) > 0) and _conforming(t2)
+    assert set(np.unique(l2)) == set(np.unique(labels))
+    c0, c2 = classify_nodes(tets, labels, len(nodes)), classify_nodes(t2, l2, len(n2))
+    assert np.array_equal(c2[:len(nodes)], c0)  # split midpoints are appended, inside one tissue
+    assert np.all(c2[len(nodes):] == -1)
+    for k, d in enumerate(dists):
+        on = np.nonzero(c0 == k)[0]
+        moved = np.linalg.norm(n2[on] - nodes[on], axis=1) > 0
+        assert np.all(d(n2[on][moved]) < 1e-9)
+        assert d(n2[on]).max() <= d(nodes[on]).max() + 1e-12
+    # Faces of the boundary and between tissues stay, by node (relocation moves nodes, not faces).
+    assert _faces(t2, l2) == _faces(tets, labels)
