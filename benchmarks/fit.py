@@ -44,7 +44,7 @@ from sphere_mesh import structured_sphere_mesh  # noqa: E402
 
 from jaxhead.electrodes import place_electrodes, spread_positions  # noqa: E402
 from jaxhead.fem import build_forward_model, simulate  # noqa: E402
-from jaxhead.fit import (LineSearchGaussNewton, fit_conductivities,  # noqa: E402
+from jaxhead.inverse.fit import (LineSearchGaussNewton, fit_conductivities,  # noqa: E402
                          fit_conductivities_batch)
 from jaxhead.inverse import add_noise, noise_std  # noqa: E402
 from jaxhead.protocol import Protocol, pair_drive  # noqa: E402

@@ -35,11 +35,11 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from jaxhead.mesh import MeshConfig, tetrahedralize_reported  # noqa: E402
+from jaxhead.geometry import MeshConfig, tetrahedralize_reported  # noqa: E402
 from jaxhead.phantom import make_head  # noqa: E402
-from jaxhead.quality import quality_report  # noqa: E402
-from jaxhead.segment.layers import make_layers  # noqa: E402
-from jaxhead.surface import SurfaceConfig, extract_surfaces  # noqa: E402
+from jaxhead.geometry.quality import quality_report  # noqa: E402
+from jaxhead.geometry.layers import make_layers  # noqa: E402
+from jaxhead.geometry.surface import SurfaceConfig, extract_surfaces  # noqa: E402
 from jaxhead.tissue import TISSUES  # noqa: E402
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
@@ -66,7 +66,7 @@ def agreement_report(mesh, labels, surfaces) -> str:
     discretisation effect of comparing a smooth surface with a voxel staircase; misses far from
     every surface would be labelling errors.
     """
-    from jaxhead.mesh import _Dist
+    from jaxhead.geometry.tetrahedralize import _Dist
 
     vox = centroid_labels(mesh, labels)
     lab = np.asarray(mesh.labels)

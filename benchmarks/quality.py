@@ -1,4 +1,4 @@
-"""Time jaxhead.quality.tet_metrics against VTK's vtkMeshQuality (Verdict) on one mesh.
+"""Time jaxhead.geometry.quality.tet_metrics against VTK's vtkMeshQuality (Verdict) on one mesh.
 
 Usage: .venv/bin/python benchmarks/quality.py [n_points]   (default 50000 -> ~335k tets,
 the size of a 1 mm head mesh). Both compute jacobian, scaled_jacobian, condition, radius_ratio,
@@ -19,8 +19,8 @@ import numpy as np  # noqa: E402
 import pyvista as pv  # noqa: E402
 from scipy.spatial import Delaunay  # noqa: E402
 
-from jaxhead.mesh import orient_tets  # noqa: E402
-from jaxhead.quality import tet_metrics  # noqa: E402
+from jaxhead.geometry import orient_tets  # noqa: E402
+from jaxhead.geometry.quality import tet_metrics  # noqa: E402
 
 VTK_MEASURES = ["jacobian", "scaled_jacobian", "condition", "radius_ratio", "min_angle",
                 "volume", "distortion"]

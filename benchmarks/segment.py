@@ -23,8 +23,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxhead.phantom import make_head  # noqa: E402
-from jaxhead.segment import SegmentConfig, classify, default_atlas, register_atlas  # noqa: E402
-from jaxhead.segment.segment import _em_data  # noqa: E402
+from jaxhead.segmentation import SegmentConfig, classify, default_atlas, register_atlas  # noqa: E402
+from jaxhead.segmentation.segment import _em_data  # noqa: E402
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
 

@@ -24,17 +24,17 @@ import time
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import jax; jax.config.update("jax_enable_x64", True)
 import numpy as np
-from jaxhead.approx_error import approximation_error, sample_conductivities
+from jaxhead.inverse.approx_error import approximation_error, sample_conductivities
 from jaxhead.electrodes import place_electrodes, spread_positions
 from jaxhead.fem import Direct, build_forward_model, simulate
-from jaxhead.fit import LineSearchGaussNewton, fit_conductivities
+from jaxhead.inverse.fit import LineSearchGaussNewton, fit_conductivities
 from jaxhead.inverse import add_noise, noise_std
 from jaxhead.io import load_mesh, save_mesh
-from jaxhead.mesh import MeshConfig, tetrahedralize
+from jaxhead.geometry import MeshConfig, tetrahedralize
 from jaxhead.phantom import make_head
 from jaxhead.protocol import Protocol, pair_drive
-from jaxhead.segment.layers import make_layers
-from jaxhead.surface import SurfaceConfig, extract_surfaces
+from jaxhead.geometry.layers import make_layers
+from jaxhead.geometry.surface import SurfaceConfig, extract_surfaces
 from jaxhead.tissue import default_sigma
 
 D = sys.argv[1] if len(sys.argv) > 1 else "runs/mesh_convergence"

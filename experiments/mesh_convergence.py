@@ -15,9 +15,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import jax; jax.config.update("jax_enable_x64", True)
 import numpy as np
 from jaxhead.phantom import make_head
-from jaxhead.segment.layers import make_layers
-from jaxhead.surface import extract_surfaces
-from jaxhead.mesh import MeshConfig, tetrahedralize
+from jaxhead.geometry.layers import make_layers
+from jaxhead.geometry.surface import extract_surfaces
+from jaxhead.geometry import MeshConfig, tetrahedralize
 from jaxhead.io import save_mesh, load_mesh
 from jaxhead.electrodes import place_electrodes, spread_positions
 from jaxhead.fem import build_forward_model, simulate, Direct

@@ -1,12 +1,12 @@
 """Segmentation accuracy on phantoms not in the atlas: Dice per tissue, MRI and CT, two noise levels.
 
-Compares `jaxhead.segment.segment` (atlas registration + EM with priors, relaxation, MRF, bias field),
+Compares `jaxhead.segmentation.segment` (atlas registration + EM with priors, relaxation, MRF, bias field),
 the same with tied partial-volume Gaussians (`SegmentConfig(partial_volume=True)`, "with PV
 Gaussians"), and a no-prior baseline: a plain Gaussian mixture on the same intensity feature (MRI log intensity,
 CT HU) with as many Gaussians as the full model, started at the intensity quantiles, each Gaussian then
 given the tissue it overlaps most in the ground truth (an *oracle* mapping: the baseline's best case).
 
-The default atlases are built from phantom seeds 1000.. (jaxhead.segment.atlas.DEFAULT_ATLAS_SEED);
+The default atlases are built from phantom seeds 1000.. (jaxhead.segmentation.atlas.DEFAULT_ATLAS_SEED);
 the evaluation subjects are seeds 0..n-1.
 
 Usage:
@@ -37,9 +37,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxhead.phantom import DEFAULT_NOISE, make_head  # noqa: E402
-from jaxhead.segment import MixtureParams, RegisterConfig, SegmentConfig, default_atlas, segment  # noqa: E402
-from jaxhead.segment.em import EMOptions, fit_mixture  # noqa: E402
-from jaxhead.segment.segment import _em_data  # noqa: E402
+from jaxhead.segmentation import MixtureParams, RegisterConfig, SegmentConfig, default_atlas, segment  # noqa: E402
+from jaxhead.segmentation.em import EMOptions, fit_mixture  # noqa: E402
+from jaxhead.segmentation.segment import _em_data  # noqa: E402
 from jaxhead.tissue import TISSUES, Tissue  # noqa: E402
 
 log = logging.getLogger("segmentation_accuracy")

@@ -1,10 +1,15 @@
 """Command line: parse arguments, build the config, call the public functions. Nothing else."""
 
 import argparse
+import dataclasses
 import logging
 import os
 import sys
 from pathlib import Path
+
+from . import io
+from .phantom import make_head
+from .run import load_config, run_pipeline
 
 
 def _setup_runtime() -> None:
@@ -16,13 +21,8 @@ def _setup_runtime() -> None:
 
 
 def _cmd_run(args) -> int:
-    from .config import load_config
-    from .pipeline import run_pipeline
-
     cfg = load_config(args.config)
     if args.out:
-        import dataclasses
-
         cfg = dataclasses.replace(cfg, out_dir=args.out)
     results = run_pipeline(cfg, force=args.force, progress=lambda s: print(s, flush=True))
     print(f"run folder: {cfg.run_dir.resolve()}")
@@ -32,9 +32,6 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_phantom(args) -> int:
-    from . import io
-    from .phantom import make_head
-
     kw = {} if args.noise is None else {"noise": args.noise}
     volume, labels = make_head(args.modality, voxel_mm=args.voxel_mm, seed=args.seed, **kw)
     out = Path(args.out)
@@ -48,8 +45,6 @@ def _cmd_phantom(args) -> int:
 
 
 def _cmd_info(args) -> int:
-    from . import io
-
     print(io.format_info(io.info(args.path)))
     return 0
 

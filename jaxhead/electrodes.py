@@ -10,6 +10,7 @@ across a fold of the surface, with total area closest to pi r^2. For the radii u
 
 from __future__ import annotations
 
+import heapq
 import math
 import warnings
 from dataclasses import dataclass
@@ -17,9 +18,13 @@ from dataclasses import dataclass
 import equinox as eqx
 import jax
 import numpy as np
+import scipy.sparse as sp
+import trimesh
+from scipy.spatial import cKDTree
+from trimesh.proximity import closest_point
 
-from .mesh import TetMesh
-from .surface import Surface
+from .geometry.surface import Surface
+from .geometry.tetmesh import TetMesh
 
 #: Default contact impedance in Ohm m^2 (see `place_electrodes`).
 DEFAULT_CONTACT_IMPEDANCE_OHM_M2 = 0.02
@@ -146,7 +151,6 @@ class _Scalp:
     """The outer boundary of a TetMesh as a triangle surface with adjacency and a query tree."""
 
     def __init__(self, mesh: TetMesh | Surface):
-        import trimesh
 
         if isinstance(mesh, Surface):
             faces, nodes = mesh.faces, mesh.vertices
@@ -164,7 +168,6 @@ class _Scalp:
         self.centroids = self.tm.triangles_center
         self.areas = self.tm.area_faces
         adj = self.tm.face_adjacency
-        import scipy.sparse as sp
 
         n = len(faces)
         self.adj = sp.coo_matrix(
@@ -173,7 +176,6 @@ class _Scalp:
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Closest points on the scalp: (points (k,3), distances (k,), face index (k,))."""
-        from trimesh.proximity import closest_point
 
         p, d, f = closest_point(self.tm, np.asarray(points, dtype=np.float64))
         return np.asarray(p), np.asarray(d), np.asarray(f, dtype=np.int64)
@@ -184,7 +186,6 @@ class _Scalp:
         Moeller & Trumbore (1997) ray-triangle tests against the faces whose direction from
         `origin` is within their own angular radius of the ray (a KD-tree on unit vectors).
         """
-        from scipy.spatial import cKDTree
 
         o = np.asarray(origin, dtype=np.float64)
         d = np.asarray(directions, dtype=np.float64)
@@ -229,7 +230,6 @@ class _Scalp:
         area is then right to within half a face, and the patch is as round as the faces
         allow and never jumps across a fold of the surface.
         """
-        import heapq
 
         target = np.pi * radius * radius
         indptr, indices = self.adj.indptr, self.adj.indices

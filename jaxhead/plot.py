@@ -3,7 +3,9 @@
 from pathlib import Path
 
 import numpy as np
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
+from ._files import atomic_write_path
 from .tissue import Tissue
 
 #: One colour per Tissue value (background transparent).
@@ -27,7 +29,6 @@ def _figure(nrows: int, ncols: int, size: float = 3.2):
 
 def save_figure(fig, path: str | Path) -> Path:
     """Write a matplotlib figure to PNG atomically and close it."""
-    from .io import atomic_write_path
     import matplotlib.pyplot as plt
 
     path = Path(path)
@@ -173,10 +174,8 @@ def plot_scalp_potential(nodes: np.ndarray, faces: np.ndarray, u: np.ndarray,
         electrodes_mm: optional (n_elec, 3) electrode centres drawn as dots.
         scale: factor from volts to `units` (1e3 for mV).
     """
-    from matplotlib import cm, colors
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
     import matplotlib
+    from matplotlib import cm, colors
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt

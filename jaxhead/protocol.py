@@ -20,6 +20,8 @@ from typing import Literal
 import equinox as eqx
 import numpy as np
 
+from ._files import atomic_write_path
+
 #: Default injected current in A: 100 uA. IEC 60601-1 limits the patient auxiliary current to
 #: 100 uA below 1 kHz (rising as f/1 kHz above it, to 10 mA at 100 kHz), so 100 uA is within
 #: the limit at any frequency. Voltages are linear in the current: pass the current your
@@ -157,7 +159,6 @@ class Protocol(eqx.Module):
             path: output file (written atomically).
             one_based: write 1-based indices (UCL/Matlab convention; default) or 0-based.
         """
-        from .io import atomic_write_path
 
         rows = self.rows + (1 if one_based else 0)
         body = "\n".join(",".join(str(int(v)) for v in r) for r in rows)
@@ -207,7 +208,6 @@ def save_voltages(path, protocol: Protocol, volts, *, one_based: bool = True) ->
         volts: (n_rows,) voltages in V, in protocol order.
         one_based: electrode indices from 1 (default) or 0.
     """
-    from .io import atomic_write_path
 
     v = np.asarray(volts, dtype=np.float64)
     if v.shape != (protocol.n_rows,):

@@ -6,7 +6,7 @@ import numpy as np
 from .tissue import Tissue
 
 
-def _check_affine(affine: np.ndarray, owner: str) -> None:
+def check_affine(affine: np.ndarray, owner: str) -> None:
     if affine.shape != (4, 4):
         raise ValueError(f"`{owner}.affine` must be 4x4, got shape {affine.shape}.")
     if not np.all(np.isfinite(affine)):
@@ -65,7 +65,7 @@ class Volume(eqx.Module):
                 f"`Volume.data` has {n} NaN/Inf voxels; replace them (e.g. np.nan_to_num) "
                 "before building a Volume."
             )
-        _check_affine(self.affine, "Volume")
+        check_affine(self.affine, "Volume")
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -110,7 +110,7 @@ class LabelMap(eqx.Module):
                 f"`LabelMap.labels` has values {bad[:10].tolist()} outside 0..{int(max(Tissue))}; "
                 f"use Tissue values ({', '.join(f'{t.value}={t.name}' for t in Tissue)})."
             )
-        _check_affine(self.affine, "LabelMap")
+        check_affine(self.affine, "LabelMap")
 
     @property
     def shape(self) -> tuple[int, int, int]:

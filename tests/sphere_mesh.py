@@ -20,7 +20,7 @@ import functools
 
 import numpy as np
 
-from jaxhead.mesh import TetMesh, orient_tets
+from jaxhead.geometry import TetMesh, orient_tets
 from jaxhead.tissue import TISSUES
 
 #: Default shell radii in mm (brain, CSF, skull, scalp outer radii): a 96 mm head with a 4 mm

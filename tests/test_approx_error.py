@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from jaxhead.approx_error import ApproximationError, approximation_error, sample_conductivities
+from jaxhead.inverse.approx_error import ApproximationError, approximation_error, sample_conductivities
 from jaxhead.electrodes import place_electrodes, spread_positions
 from jaxhead.fem import build_forward_model, simulate
-from jaxhead.fit import LineSearchGaussNewton, fit_conductivities
+from jaxhead.inverse.fit import LineSearchGaussNewton, fit_conductivities
 from jaxhead.inverse import add_noise, noise_std
 from jaxhead.tissue import default_sigma
 from sphere_mesh import structured_sphere_mesh

@@ -2,7 +2,7 @@
 
 import pytest
 
-from jaxhead.config import InputConfig, RunConfig, load_config
+from jaxhead.run.config import InputConfig, RunConfig, load_config
 
 
 def _write(tmp_path, text):

@@ -266,7 +266,7 @@ def test_layout_follows_landmarks_under_rigid_motion():
     rot = np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
     shift = np.array([10.0, -5.0, 20.0])
     m0 = structured_sphere_mesh((R,), h_mm=H)
-    from jaxhead.mesh import TetMesh
+    from jaxhead.geometry import TetMesh
 
     m1 = TetMesh(m0.nodes @ rot.T + shift, m0.tets, m0.labels)
     lm1 = {k: np.asarray(v, float) @ rot.T + shift for k, v in LANDMARKS.items()}
@@ -317,7 +317,7 @@ def test_refinement_points(mesh):
 def test_layout_on_scalp_surface_before_meshing(mesh):
     # positions can come from the scalp Surface (to refine the mesher there): same as on the
     # mesh whose boundary that surface is
-    from jaxhead.surface import Surface
+    from jaxhead.geometry.surface import Surface
 
     f, _ = mesh.boundary_faces()
     scalp = Surface(mesh.nodes, f, "scalp")
@@ -352,7 +352,7 @@ def test_electrode_positions_match_placed_centres(mesh, layout):
     # What the mesh stage refines at (from the scalp Surface, before meshing) is where
     # electrodes_from_config later puts the discs on the mesh.
     from jaxhead.electrodes import ElectrodeConfig, electrode_positions, electrodes_from_config
-    from jaxhead.surface import Surface
+    from jaxhead.geometry.surface import Surface
 
     cfg = ElectrodeConfig(layout=layout, radius_mm=6.0, landmarks_mm=LANDMARKS)
     f, _ = mesh.boundary_faces()

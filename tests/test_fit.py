@@ -5,7 +5,7 @@ import pytest
 
 from jaxhead.electrodes import place_electrodes, spread_positions
 from jaxhead.fem import build_forward_model, jacobian, simulate
-from jaxhead.fit import LineSearchGaussNewton, fit_conductivities, fit_conductivities_batch
+from jaxhead.inverse.fit import LineSearchGaussNewton, fit_conductivities, fit_conductivities_batch
 from jaxhead.inverse import add_noise, noise_std
 from jaxhead.protocol import Protocol, pair_drive
 from jaxhead.tissue import default_sigma

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxhead.approx_error import approximation_error, sample_conductivities
+from jaxhead.inverse.approx_error import approximation_error, sample_conductivities
 from jaxhead.electrodes import place_electrodes, spread_positions
 from jaxhead.fem import build_forward_model
 from jaxhead.fem import simulate
-from jaxhead.fit import LineSearchGaussNewton, fit_conductivities
+from jaxhead.inverse.fit import LineSearchGaussNewton, fit_conductivities
 from jaxhead.inverse import (TSVD, Tikhonov, add_noise, image_metrics, jacobian_grid, make_grid,
                              noise_std, reconstruct, simulate_difference, spherical_perturbation,
                              svd)
@@ -43,10 +43,10 @@ RECON_TET = {"brain": 12.0, "csf": 4.0, "skull": 4.5, "scalp": 6.0}
 
 def _mesh(path: Path | None, surf_mm, tet_mm, max_opt):
     from jaxhead.io import load_mesh, save_mesh
-    from jaxhead.mesh import MeshConfig, tetrahedralize
+    from jaxhead.geometry import MeshConfig, tetrahedralize
     from jaxhead.phantom import make_head
-    from jaxhead.segment.layers import make_layers
-    from jaxhead.surface import SurfaceConfig, extract_surfaces
+    from jaxhead.geometry.layers import make_layers
+    from jaxhead.geometry.surface import SurfaceConfig, extract_surfaces
 
     if path is not None and path.exists():
         return load_mesh(path)

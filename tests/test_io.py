@@ -27,8 +27,8 @@ from jaxhead.io import (
     save_surface,
     save_volume,
 )
-from jaxhead.mesh import TetMesh, orient_tets, signed_volumes
-from jaxhead.surface import Surface
+from jaxhead.geometry import TetMesh, orient_tets, signed_volumes
+from jaxhead.geometry.surface import Surface
 from jaxhead.tissue import Tissue
 from jaxhead.volume import LabelMap, Volume, default_affine
 

@@ -1,4 +1,4 @@
-"""Tests of jaxhead.segment.layers: every rule on synthetic nested spheres, checked independently."""
+"""Tests of jaxhead.geometry.layers: every rule on synthetic nested spheres, checked independently."""
 
 import json
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from jaxhead.segment.layers import (
+from jaxhead.geometry.layers import (
     RULES, LayerConfig, LayerReport, ball, make_layers, make_layers_reported, pad_labels)
 from jaxhead.tissue import TISSUES, Tissue
 from jaxhead.volume import LabelMap, default_affine

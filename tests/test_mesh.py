@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxhead.mesh import MeshConfig, TetMesh, tetrahedralize, tetrahedralize_reported
-from jaxhead.surface import Surface
+from jaxhead.geometry import MeshConfig, TetMesh, tetrahedralize, tetrahedralize_reported
+from jaxhead.geometry.surface import Surface
 from jaxhead.tissue import TISSUES, Tissue
 
 RADII = (8.0, 10.0, 12.0, 14.0)  # mm: a brain of 8 mm and three 2 mm shells
@@ -123,7 +123,7 @@ def test_interfaces_are_closed_surfaces_on_their_spheres(meshed):
 
 
 def test_quality_after_improvement(meshed):
-    from jaxhead.quality import tet_metrics
+    from jaxhead.geometry.quality import tet_metrics
 
     mesh, rep = meshed
     q = tet_metrics(mesh.nodes, mesh.tets)
@@ -211,9 +211,9 @@ def test_config_accepts_names_and_tissues():
 def test_phantom_head_mesh():
     """A 2 mm phantom head: four tissues, Table-2 clean, volumes and labels near the voxels."""
     from jaxhead.phantom import make_head
-    from jaxhead.quality import quality_report
-    from jaxhead.segment.layers import make_layers
-    from jaxhead.surface import extract_surfaces
+    from jaxhead.geometry.quality import quality_report
+    from jaxhead.geometry.layers import make_layers
+    from jaxhead.geometry.surface import extract_surfaces
     from jaxhead.volume import voxel_sizes
 
     _, labels = make_head("mri", voxel_mm=2.0)
@@ -238,7 +238,7 @@ def test_phantom_head_mesh():
 def test_flat_tet_at_interface_takes_its_neighbours_side():
     """A flat tet whose centroid lies just outside the BRAIN surface, but inside the envelope,
     and whose other faces touch brain tets, is BRAIN (fTetWild's interface is its outer face)."""
-    from jaxhead.mesh import _Dist, label_tets
+    from jaxhead.geometry.tetrahedralize import _Dist, label_tets
 
     s = _surfaces(subdiv=4)
     surfs = [(s[t].vertices, s[t].faces) for t in TISSUES]

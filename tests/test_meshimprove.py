@@ -5,18 +5,18 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxhead._meshimprove import _flip_pass, _split_pass, tet_quality
-from jaxhead.mesh import (
+from jaxhead.geometry.improve import _flip_pass, _split_pass, tet_quality
+from jaxhead.geometry.tetrahedralize import (
     _SURFACE_EDGE_FACTOR,
     _SURFACE_GRADING,
     MeshConfig,
-    _face_adjacency,
+    face_adjacency,
     _vertex_edge_mm,
     signed_volumes,
     sizing_field,
     tetrahedralize,
 )
-from jaxhead.surface import Surface
+from jaxhead.geometry.surface import Surface
 from jaxhead.tissue import TISSUES
 
 
@@ -32,7 +32,7 @@ def _bipyramid(h):
 
 def _faces(tets, labels):
     """Boundary faces and faces between different labels, as sets of sorted node triples."""
-    faces, owner, i, j, boundary = _face_adjacency(tets)
+    faces, owner, i, j, boundary = face_adjacency(tets)
     key = lambda f: {tuple(sorted(x)) for x in f.tolist()}  # noqa: E731
     iface = labels[owner[i]] != labels[owner[j]]
     return key(faces[boundary]), key(faces[i[iface]])
@@ -89,7 +89,7 @@ def test_split_of_an_interior_edge():
     ring = np.stack([np.cos(ang), np.sin(ang), np.zeros(k)], axis=1)
     nodes = np.vstack([ring, [[0, 0, 4.0], [0, 0, -4.0]]])
     tets = np.array([[k + 1, k, i, (i + 1) % k] for i in range(k)])
-    from jaxhead.mesh import orient_tets
+    from jaxhead.geometry import orient_tets
 
     tets, _ = orient_tets(nodes, tets)
     labels = np.full(k, 3)
@@ -178,8 +178,8 @@ def test_improve_mesh_never_worse_and_keeps_interfaces(raw_mesh):
     """The whole improvement on fTetWild's raw sphere mesh: no more tets below the Table-2 limit
     and no lower worst quality than the input; labels' tissues kept; every interface node on
     its input surface as far as it was (relocated ones exactly), and the boundary node set kept."""
-    from jaxhead._meshimprove import LIMIT, classify_nodes, improve_mesh
-    from jaxhead.mesh import _check_surfaces, _Dist
+    from jaxhead.geometry.improve import LIMIT, classify_nodes, improve_mesh
+    from jaxhead.geometry.tetrahedralize import _check_surfaces, _Dist
 
     nodes, tets, labels = raw_mesh
     dists = [_Dist(V, F) for V, F in _check_surfaces(_spheres())]

@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from jaxhead.config import InputConfig, RunConfig
-from jaxhead.pipeline import run_pipeline
+from jaxhead.run.config import InputConfig, RunConfig
+from jaxhead.run.pipeline import run_pipeline
 
 
 def _fake_stages(calls):

@@ -1,4 +1,4 @@
-"""Tests of jaxhead.quality: analytic tets, an independent NumPy implementation, VTK (Verdict),
+"""Tests of jaxhead.geometry.quality: analytic tets, an independent NumPy implementation, VTK (Verdict),
 invariances, finite-difference gradients, jit consistency and the Table-2 report."""
 
 import json
@@ -12,8 +12,8 @@ import pytest
 import pyvista as pv
 from scipy.spatial import Delaunay
 
-from jaxhead.mesh import TetMesh, orient_tets, signed_volumes
-from jaxhead.quality import (
+from jaxhead.geometry import TetMesh, orient_tets, signed_volumes
+from jaxhead.geometry.quality import (
     ACCEPTABLE_RANGES,
     METRIC_NAMES,
     TABLE2_METRICS,

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from jaxhead.phantom import make_head, make_population
-from jaxhead.segment import Atlas, RegisterConfig, SegmentConfig, build_atlas, cache_dir, default_atlas, segment
-from jaxhead.segment.atlas import ATLAS_VERSION, DEFAULT_ATLAS_SEED
+from jaxhead.segmentation import Atlas, RegisterConfig, SegmentConfig, build_atlas, cache_dir, default_atlas, segment
+from jaxhead.segmentation.atlas import ATLAS_VERSION, DEFAULT_ATLAS_SEED
 from jaxhead.tissue import TISSUES, Tissue
 from jaxhead.volume import Volume
 

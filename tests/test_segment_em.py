@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from jaxhead.segment.em import (
+from jaxhead.segmentation.em import (
     EMOptions,
     MixtureParams,
     bias_field,
@@ -16,7 +16,7 @@ from jaxhead.segment.em import (
     grid_coordinates,
     infer_posteriors,
 )
-from jaxhead.segment.mrf import mean_field, neighbour_sum, potts_energy
+from jaxhead.segmentation.mrf import mean_field, neighbour_sum, potts_energy
 
 SHAPE = (24, 20, 22)
 
@@ -217,7 +217,7 @@ def test_em_options_validation(kw, match):
 
 def test_tied_partial_volume_gaussians_match_the_uniform_mixing_line():
     # Standardised units with c = 1, s = 2; pure Gaussians A (class 0) at 0 and B (class 1) at 10.
-    from jaxhead.segment.em import _tie_partial_volume
+    from jaxhead.segmentation.em import _tie_partial_volume
 
     opts = EMOptions(component_class=(0, 0, 1, 1), n_classes=2, pv_of=(-1, 1, -1, 0))
     mu = jnp.array([0.0, 99.0, 10.0, 99.0])

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage
 
-from jaxhead.segment.register import (
+from jaxhead.segmentation.register import (
     AffineTransform,
     BSplineTransform,
     RegisterConfig,

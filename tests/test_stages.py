@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from jaxhead import save_mesh
-from jaxhead.config import (ElectrodeConfig, ForwardConfig, InputConfig, InverseConfig,
+from jaxhead.run.config import (ElectrodeConfig, ForwardConfig, InputConfig, InverseConfig,
                             RunConfig)
-from jaxhead.pipeline import run_pipeline
+from jaxhead.run.pipeline import run_pipeline
 from jaxhead.protocol import ProtocolConfig
 from sphere_mesh import structured_sphere_mesh
 

@@ -1,4 +1,4 @@
-"""Tests of jaxhead.surface on nested spheres (analytic volumes, centres) and hand-made meshes."""
+"""Tests of jaxhead.geometry.surface on nested spheres (analytic volumes, centres) and hand-made meshes."""
 
 import json
 import logging
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxhead.segment.layers import make_layers
-from jaxhead.surface import (
+from jaxhead.geometry.layers import make_layers
+from jaxhead.geometry.surface import (
     Surface, SurfaceConfig, _tri_tri_intersect, check_surface, edge_lengths, extract_surfaces,
     extract_surfaces_reported, self_intersections, surface_area_mm2, surface_gap_mm,
     surface_volume_mm3, to_trimesh)
@@ -170,14 +170,14 @@ def test_decimate_option_and_custom_edges():
 
 def test_extract_surfaces_logs_report(caplog):
     layers = make_layers(sphere_labels(radii=(12.0, 15.0, 18.0, 21.0), vox=3.0, flip_x=False))
-    with caplog.at_level(logging.INFO, logger="jaxhead.surface"):
+    with caplog.at_level(logging.INFO, logger="jaxhead.geometry.surface"):
         surfaces = extract_surfaces(layers, SurfaceConfig(edge_mm=3.0))
     assert "extract_surfaces" in caplog.text
     assert len(surfaces) == 4
 
 
 def test_kept_ventricles_are_filled_and_reported():
-    from jaxhead.segment.layers import LayerConfig
+    from jaxhead.geometry.layers import LayerConfig
 
     labels = sphere_labels(radii=(15.0, 18.0, 21.0, 24.0), vox=3.0, flip_x=False, centre=np.zeros(3))
     L = labels.labels.copy()
@@ -309,7 +309,7 @@ def test_surface_gap_analytic():
 
 
 def _check_head(labels, cfg=SurfaceConfig()):
-    from jaxhead.segment.layers import make_layers_reported
+    from jaxhead.geometry.layers import make_layers_reported
 
     layers, lrep = make_layers_reported(labels)
     surfaces, rep = extract_surfaces_reported(layers, cfg)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxhead import LabelMap, Surface, TetMesh, Tissue, Volume, default_sigma, orient_tets
-from jaxhead.mesh import signed_volumes
+from jaxhead.geometry import signed_volumes
 from jaxhead.volume import default_affine, voxel_sizes
 
 

@@ -1,9 +1,24 @@
 """Differentiable complete-electrode-model FEM: assembly, solvers, forward model, Jacobian."""
 
 from .assembly import MM_TO_M
-from .forward import ForwardModel, assemble, build_forward_model, jacobian, potentials, simulate
-from .solvers import (AbstractSolver, BlockCG, Direct, Jacobi, SmoothedAggregation, linear_solve,
-                      pardiso_available)
+from .forward import (
+                      ForwardModel,
+                      assemble,
+                      build_forward_model,
+                      jacobian,
+                      jacobian_cells,
+                      potentials,
+                      simulate,
+)
+from .solvers import (
+                      AbstractSolver,
+                      BlockCG,
+                      Direct,
+                      Jacobi,
+                      SmoothedAggregation,
+                      linear_solve,
+                      pardiso_available,
+)
 
 __all__ = [
     "MM_TO_M",
@@ -16,6 +31,8 @@ __all__ = [
     "assemble",
     "build_forward_model",
     "jacobian",
+    "jacobian_cells",
+    "jacobian_cells",
     "linear_solve",
     "pardiso_available",
     "potentials",

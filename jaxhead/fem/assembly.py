@@ -24,6 +24,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse as sp
 
 #: Millimetres to metres: the single geometry unit conversion of the FEM.
 MM_TO_M = 1e-3
@@ -207,7 +208,6 @@ class Pattern:
 
     def to_scipy(self, values, full: bool = True):
         """SciPy CSR matrix from stored values (full symmetric, or upper triangle)."""
-        import scipy.sparse as sp
 
         values = np.asarray(values, dtype=np.float64)
         if not full:

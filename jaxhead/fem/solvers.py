@@ -30,8 +30,11 @@ positive definite raises from the callback; CG that does not reach its tolerance
 from __future__ import annotations
 
 import ctypes
+import ctypes.util
+import glob
 import logging
 import os
+import sys
 import threading
 import weakref
 from typing import Literal
@@ -40,6 +43,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse.linalg as spla
 
 from .assembly import Pattern
 
@@ -303,7 +307,6 @@ class _ScipyLU:
         self.factor_nnz = -1
 
     def factor(self, values: np.ndarray) -> None:
-        import scipy.sparse.linalg as spla
 
         a = self.pattern.to_scipy(values).tocsc()
         try:
@@ -404,10 +407,6 @@ def _mkl_pardiso():
     whole environment recursively (~0.5 s), so it is not used.
     """
     if not _MKL:
-        import ctypes.util
-        import glob
-        import os
-        import sys
 
         found = [os.environ.get("PYPARDISO_MKL_RT"), ctypes.util.find_library("mkl_rt")]
         for base in (sys.prefix, sys.base_prefix):

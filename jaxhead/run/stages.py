@@ -4,24 +4,55 @@ Each stage is ``fn(cfg, subject) -> summary dict``. Only public jaxhead function
 no numerics live in this module.
 """
 
+import dataclasses
+import json
 import logging
+import time
+from pathlib import Path
 
+import numpy as np
+
+from .. import io
+from ..electrodes import electrode_positions, electrodes_from_config, place_electrodes
+from ..fem import Direct, build_forward_model, potentials, simulate
+from ..fem.solvers import BlockCG
+from ..geometry.layers import make_layers_reported
+from ..geometry.quality import quality_report
+from ..geometry.surface import extract_surfaces_reported
+from ..geometry.tetrahedralize import tetrahedralize_reported
+from ..inverse import (
+    TSVD,
+    Tikhonov,
+    add_noise,
+    grid_to_tets,
+    image_metrics,
+    jacobian_grid,
+    make_grid,
+    noise_std,
+    reconstruct,
+    spherical_perturbation,
+)
+from ..inverse.approx_error import approximation_error, sample_conductivities
+from ..inverse.fit import LineSearchGaussNewton, fit_conductivities
+from .._files import atomic_write_path
+from ..phantom import make_head
+from ..plot import plot_image_cut, plot_mesh_cut, plot_overlay, plot_scalp_potential
+from ..protocol import load_voltages, protocol_from_config, save_voltages
+from ..segmentation import segment
+from ..tissue import TISSUES, Tissue
 from .config import RunConfig
-from .pipeline import Subject
+from .subject import Subject
 
 logger = logging.getLogger(__name__)
 
 
 def run_input(cfg: RunConfig, subject: Subject) -> dict:
     """Make the phantom (or load the scan), write scan.nii.gz (+ labels) and an overlay PNG."""
-    from . import io
-    from .plot import plot_overlay
 
     out = subject.dir("input")
     c = cfg.input
     labels = None
     if c.source == "phantom":
-        from .phantom import make_head
 
         kw = {} if c.noise is None else {"noise": c.noise}
         volume, labels = make_head(subject.modality, voxel_mm=c.voxel_mm, seed=c.seed, **kw)
@@ -44,14 +75,8 @@ def run_input(cfg: RunConfig, subject: Subject) -> dict:
 
 def run_segment(cfg: RunConfig, subject: Subject) -> dict:
     """Atlas registration + EM/MRF segmentation into brain, CSF, skull, scalp (and Dice vs truth)."""
-    import dataclasses
 
-    import numpy as np
 
-    from . import io
-    from .plot import plot_overlay
-    from .segment import segment
-    from .tissue import TISSUES
 
     volume = io.load_volume(subject.file("input", "scan.nii.gz"))
     seg_cfg = dataclasses.replace(cfg.segment, modality=subject.modality)
@@ -75,7 +100,6 @@ def run_segment(cfg: RunConfig, subject: Subject) -> dict:
 
 def _labels_for_layers(cfg: RunConfig, subject: Subject):
     """The label map the layers stage starts from: the segmentation if it ran, else the input's."""
-    from . import io
 
     for stage in ("segment", "input"):
         path = subject.file(stage, "labels.nii.gz")
@@ -88,9 +112,7 @@ def _labels_for_layers(cfg: RunConfig, subject: Subject):
 
 
 def _write_text(path, text: str) -> None:
-    from pathlib import Path
 
-    from .io import atomic_write_path
 
     with atomic_write_path(path) as tmp:
         Path(tmp).write_text(text)
@@ -98,9 +120,6 @@ def _write_text(path, text: str) -> None:
 
 def run_layers(cfg: RunConfig, subject: Subject) -> dict:
     """Hard labels -> nested layers (closing, nesting, minimum thickness), with a per-rule report."""
-    from . import io
-    from .plot import plot_overlay
-    from .segment.layers import make_layers_reported
 
     labels, source = _labels_for_layers(cfg, subject)
     layers, report = make_layers_reported(labels, cfg.layers)
@@ -115,8 +134,6 @@ def run_layers(cfg: RunConfig, subject: Subject) -> dict:
 
 def run_surfaces(cfg: RunConfig, subject: Subject) -> dict:
     """Layers -> four nested watertight surfaces (marching cubes, repair, Taubin, remeshing)."""
-    from . import io
-    from .surface import extract_surfaces_reported
 
     layers = io.load_labels(subject.file("layers", "layers.nii.gz"))
     surfaces, report = extract_surfaces_reported(layers, cfg.surfaces)
@@ -129,10 +146,6 @@ def run_surfaces(cfg: RunConfig, subject: Subject) -> dict:
 
 def run_mesh(cfg: RunConfig, subject: Subject) -> dict:
     """Surfaces -> labelled four-tissue tet mesh (fTetWild + improvement), with a cut-away PNG."""
-    from . import io
-    from .mesh import tetrahedralize_reported
-    from .plot import plot_mesh_cut
-    from .tissue import TISSUES
 
     surfaces = {t: io.load_surface(subject.file("surfaces", f"{t.name.lower()}.stl"), t)
                 for t in TISSUES}
@@ -148,10 +161,7 @@ def run_mesh(cfg: RunConfig, subject: Subject) -> dict:
 
 def _mesh_config(cfg: RunConfig, surfaces):
     """The mesh stage's MeshConfig: [mesh], refined under the [electrodes] unless told not to."""
-    import dataclasses
 
-    from .electrodes import electrode_positions
-    from .tissue import Tissue
 
     mesh_cfg = cfg.mesh
     if not cfg.electrodes.refine_mesh or mesh_cfg.refine_points_mm:
@@ -166,7 +176,6 @@ def _mesh_config(cfg: RunConfig, surfaces):
 
 def run_export(cfg: RunConfig, subject: Subject) -> dict:
     """Write the mesh as .msh (Gmsh), .vtu (ParaView) and .mat (MATLAB/EIDORS), as configured."""
-    from . import io
 
     mesh = io.load_mesh(subject.file("mesh", "mesh.vtu"))
     out = subject.dir("export")
@@ -176,10 +185,7 @@ def run_export(cfg: RunConfig, subject: Subject) -> dict:
 
 def run_quality(cfg: RunConfig, subject: Subject) -> dict:
     """The seed paper's Table-2 row and per-tissue quality statistics, with histograms."""
-    import json
 
-    from . import io
-    from .quality import quality_report
 
     mesh = io.load_mesh(subject.file("mesh", "mesh.vtu"))
     out = subject.dir("quality")
@@ -191,11 +197,7 @@ def run_quality(cfg: RunConfig, subject: Subject) -> dict:
 
 def run_forward(cfg: RunConfig, subject: Subject) -> dict:
     """Electrodes on the scalp, a protocol, boundary voltages (CSV) and the scalp potential (PNG)."""
-    import numpy as np
 
-    from .fem import potentials, simulate
-    from .plot import plot_scalp_potential
-    from .protocol import save_voltages
 
     mesh, electrodes, protocol, model = _forward_model(cfg, subject)
     sigma = cfg.forward.sigma()
@@ -221,10 +223,6 @@ def run_forward(cfg: RunConfig, subject: Subject) -> dict:
 
 def _forward_model(cfg: RunConfig, subject: Subject):
     """The mesh, electrodes, protocol and forward model of a subject, as configured."""
-    from . import io
-    from .electrodes import electrodes_from_config
-    from .fem import build_forward_model
-    from .protocol import protocol_from_config
 
     mesh = io.load_mesh(subject.file("mesh", "mesh.vtu"))
     electrodes = electrodes_from_config(mesh, cfg.electrodes)
@@ -244,17 +242,8 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
     results are optimistic about modelling error; see tests/test_inverse_recovery.py and the
     slow head tests for data from a different mesh.
     """
-    import time
 
-    import numpy as np
 
-    from .fem import simulate
-    from .fit import LineSearchGaussNewton, fit_conductivities
-    from .inverse import (TSVD, Tikhonov, add_noise, grid_to_tets, image_metrics,
-                          jacobian_grid, make_grid, noise_std, reconstruct,
-                          spherical_perturbation)
-    from .plot import plot_image_cut
-    from .protocol import load_voltages
 
     c = cfg.inverse
     seconds = {}
@@ -348,10 +337,6 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
 
 def _approx_error(cfg: RunConfig, electrodes, model, protocol, sigma):
     """The approximation-error model of a run's mesh against `[inverse] approx_error_mesh`."""
-    from . import io
-    from .approx_error import approximation_error, sample_conductivities
-    from .electrodes import place_electrodes
-    from .fem import build_forward_model
 
     fine = io.load_mesh(cfg.inverse.approx_error_mesh)
     fine_el = place_electrodes(fine, electrodes.centres, radius_mm=cfg.electrodes.radius_mm,
@@ -365,11 +350,9 @@ def _approx_error(cfg: RunConfig, electrodes, model, protocol, sigma):
 
 
 def _solver(name: str):
-    from .fem import Direct
 
     if name == "direct":
         return Direct()
-    from .fem.solvers import BlockCG
 
     return BlockCG()
 

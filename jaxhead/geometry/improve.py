@@ -31,7 +31,7 @@ whose star is all poor) gets topological help between relocation cycles: 2-3 and
 (:func:`_split_pass`), all inside one tissue so that no interface face or label changes; the
 best state seen is kept, so the extra cycles never leave a worse mesh.
 
-Quality is Verdict's (``jaxhead.quality``): q = min(scaled Jacobian, 0.6 / condition number),
+Quality is Verdict's (``jaxhead.geometry.quality``): q = min(scaled Jacobian, 0.6 / condition number),
 which puts both of the seed paper's limits (scaled Jacobian 0.2, condition number 3) at q = 0.2.
 """
 
@@ -39,7 +39,8 @@ import time
 
 import numpy as np
 
-from .mesh import _TET_FACES, _face_adjacency
+from .quality import tet_metrics
+from .tetmesh import _TET_FACES, face_adjacency, signed_volumes
 
 #: The seed paper's Table-2 limit (scaled Jacobian 0.2, condition number 3) in terms of q.
 LIMIT = 0.2
@@ -70,8 +71,7 @@ def tet_quality(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 
 def _sj_cond(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Scaled Jacobian and condition number (``jaxhead.quality``) of tets with corners p (m, 4, 3)."""
-    from .quality import tet_metrics
+    """Scaled Jacobian and condition number (``jaxhead.geometry.quality``) of tets with corners p (m, 4, 3)."""
 
     sj, cond = np.zeros(len(p)), np.zeros(len(p))
     for a in range(0, len(p), _BUCKETS[-1]):
@@ -108,7 +108,7 @@ def classify_nodes(tets: np.ndarray, labels: np.ndarray, n_nodes: int) -> np.nda
     Returns:
         (n_nodes,) int: -1 free (inside one tissue), k on surface k only, -2 on several.
     """
-    faces, owner, fi, fj, boundary = _face_adjacency(tets)
+    faces, owner, fi, fj, boundary = face_adjacency(tets)
     la, lb = labels[owner[fi]], labels[owner[fj]]
     on = np.zeros((4, n_nodes), dtype=bool)
     for k in range(4):
@@ -206,10 +206,10 @@ def _flip_pass(nodes, tets, labels, q, target):
     Returns:
         (tets, labels, q) updated, and the numbers of 2-3 and 3-2 flips taken.
     """
-    from .mesh import signed_volumes
+
 
     m = len(tets)
-    faces, owner, fi, fj, _ = _face_adjacency(tets)
+    faces, owner, fi, fj, _ = face_adjacency(tets)
     nbr = np.full(4 * m, -1)
     nbr[fi], nbr[fj] = owner[fj], owner[fi]
     nbr = nbr.reshape(m, 4)  # neighbour across face k (the face opposite corner k)

@@ -27,8 +27,9 @@ from typing import Literal, Sequence
 import equinox as eqx
 import numpy as np
 
+from ..phantom import make_population
 from ..tissue import Tissue
-from ..volume import LabelMap, Volume, _check_affine
+from ..volume import LabelMap, Volume, check_affine
 from .register import RegisterConfig, register, resample
 
 log = logging.getLogger(__name__)
@@ -94,7 +95,7 @@ class Atlas(eqx.Module):
                 f"`Atlas.priors` must sum to 1 over classes at every voxel (max deviation "
                 f"{np.abs(s - 1).max():.3g}); normalise them with priors / priors.sum(0)."
             )
-        _check_affine(self.affine, "Atlas")
+        check_affine(self.affine, "Atlas")
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -250,7 +251,6 @@ def default_atlas(
             return Atlas.load(path)
         except Exception as err:  # a corrupt cache file is rebuilt, and said so
             log.warning("atlas cache %s unreadable (%s); rebuilding it", path, err)
-    from ..phantom import make_population  # the phantom is only needed to build the default atlas
 
     log.info("building the default %s atlas from %d phantom subjects at %g mm", modality, n_subjects, voxel_mm)
     pop = make_population(n_subjects, modality, seed=seed, voxel_mm=voxel_mm)

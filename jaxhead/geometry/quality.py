@@ -49,9 +49,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._types import Array, Nodes, Tets
-from .mesh import TetMesh
-from .tissue import TISSUES
+from .._types import Array, Nodes, Tets
+from ..tissue import TISSUES
+from .tetmesh import TetMesh
 
 #: Metric names, in the order `tet_metrics` and `metrics` return them.
 METRIC_NAMES: tuple[str, ...] = (

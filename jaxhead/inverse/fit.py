@@ -20,9 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ..fem import simulate
+from ..tissue import TISSUE_NAMES, Tissue
 from .approx_error import ApproximationError
-from .tissue import TISSUE_NAMES, Tissue
-
 
 _DEFAULT_RANGE = 1e3  # default bounds: init / 1e3 .. init * 1e3
 
@@ -149,7 +149,6 @@ def _unpack(theta, p: _Problem):
 
 def _residuals(theta, p: _Problem):
     """Whitened residuals W (V(sigma(theta)) + offset - measured) (module level: compiled once)."""
-    from .fem import simulate
 
     sigma, z = _unpack(theta, p)
     v = simulate(p.model, sigma, p.protocol, contact_impedance=z)

@@ -1,6 +1,6 @@
 """Segmentation of head MRI/CT: atlas, registration, EM with MRF and bias field, `segment`.
 
-(`layers.py`, the post-processing into nested layers, is a separate module: import it directly.)
+(The post-processing into nested layers is `jaxhead.geometry.make_layers`.)
 """
 
 from .atlas import Atlas, build_atlas, cache_dir, default_atlas

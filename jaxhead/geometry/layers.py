@@ -33,7 +33,7 @@ towards removing diagonal-only contacts and tunnels: both make non-manifold surf
 import logging
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -353,7 +353,7 @@ def check_labels(labels: LabelMap, name: str = "labels") -> None:
         raise ValueError(
             f"`{name}` has tissue on the volume border ({where}): the layers would be cut open "
             "there. Pad the volume with background first, e.g. "
-            "`jaxhead.segment.layers.pad_labels(labels, 4)` (or numpy.pad with 0 and a shifted "
+            "`jaxhead.geometry.layers.pad_labels(labels, 4)` (or numpy.pad with 0 and a shifted "
             "affine).")
 
 

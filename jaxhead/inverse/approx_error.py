@@ -30,7 +30,8 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
-from .tissue import default_sigma
+from ..fem import simulate
+from ..tissue import default_sigma
 
 
 class ApproximationError(eqx.Module):
@@ -127,7 +128,6 @@ def approximation_error(accurate, reduced, protocol, sigma_samples) -> Approxima
     Returns:
         A `ApproximationError`.
     """
-    from .fem import simulate
 
     s = np.asarray(sigma_samples, dtype=np.float64)
     if s.ndim != 2 or s.shape[1] != 4 or s.shape[0] < 2:

@@ -15,13 +15,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from .electrodes import ElectrodeConfig
-from .mesh import MeshConfig
-from .protocol import ProtocolConfig
-from .segment import SegmentConfig
-from .segment.layers import LayerConfig
-from .surface import SurfaceConfig
-from .tissue import DEFAULT_SIGMA_S_M, TISSUE_NAMES
+import numpy as np
+
+from ..electrodes import ElectrodeConfig
+from ..geometry.layers import LayerConfig
+from ..geometry.surface import SurfaceConfig
+from ..geometry.tetrahedralize import MeshConfig
+from ..protocol import ProtocolConfig
+from ..segmentation import SegmentConfig
+from ..tissue import DEFAULT_SIGMA_S_M, TISSUE_NAMES
 
 Modality = Literal["mri", "ct"]
 
@@ -90,7 +92,6 @@ class ForwardConfig:
 
     def sigma(self):
         """(4,) conductivities in S/m, ordered BRAIN, CSF, SKULL, SCALP."""
-        import numpy as np
 
         d = dict(zip(TISSUE_NAMES, DEFAULT_SIGMA_S_M)) | dict(self.sigma_s_m)
         return np.array([d[n] for n in TISSUE_NAMES], dtype=np.float64)

@@ -1,6 +1,6 @@
 """Closed triangle surfaces of the nested tissue solids: extraction, repair, remeshing, checks.  [host]
 
-:func:`extract_surfaces` turns a layered label map (see ``jaxhead.segment.layers.make_layers``)
+:func:`extract_surfaces` turns a layered label map (see ``jaxhead.geometry.layers.make_layers``)
 into one surface per nested solid (BRAIN: brain; CSF: brain+CSF; SKULL: +skull; SCALP: the whole
 head), the seed paper's marching cubes + MeshLab steps (Vonach et al. 2012) done automatically:
 
@@ -44,14 +44,19 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import equinox as eqx
+import fast_simplification
+import gpytoolbox
+import manifold3d as m3
 import numpy as np
+import trimesh
 from scipy import ndimage as ndi
 from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
+from skimage.measure import marching_cubes
 
-from .tissue import TISSUES, Tissue
-from .volume import LabelMap
+from ..tissue import TISSUES, Tissue
+from ..volume import LabelMap
 
 log = logging.getLogger(__name__)
 
@@ -268,7 +273,6 @@ class SurfaceReport:
 
 
 def _tm(vertices, faces):
-    import trimesh
 
     return trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64),
                            process=False, validate=False)
@@ -499,7 +503,6 @@ def self_intersections(surface: Surface, *, chunk: int = 200_000) -> np.ndarray:
 
 
 def _manifold(surface: Surface):
-    import manifold3d as m3
 
     mesh = m3.Mesh(vert_properties=surface.vertices.astype(np.float32),
                    tri_verts=surface.faces.astype(np.uint32))
@@ -523,7 +526,6 @@ def surface_gap_mm(inner: Surface, outer: Surface, *, search_mm: float = 10.0) -
     Returns:
         The gap in mm, in [0, search_mm].
     """
-    import manifold3d as m3
 
     mi, mo = _manifold(inner), _manifold(outer)
     outside = (mi - mo).volume()
@@ -579,7 +581,7 @@ def _nesting_violations(labels: np.ndarray) -> dict[Tissue, int]:
 def _check_layers(layers) -> None:
     """Bad input -> ValueError: not a LabelMap, empty, a tissue missing, tissue on the border.
 
-    (The same checks as ``jaxhead.segment.layers.check_labels``; repeated here so this module
+    (The same checks as ``jaxhead.geometry.layers.check_labels``; repeated here so this module
     does not import the segmentation package.)
     """
     if not isinstance(layers, LabelMap):
@@ -606,11 +608,10 @@ def _check_layers(layers) -> None:
         raise ValueError(
             f"`layers` has tissue on the volume border ({where}): its surface would be closed "
             "artificially there. Pad the volume with background first, e.g. "
-            "`jaxhead.segment.layers.pad_labels(labels, 4)`, and run make_layers.")
+            "`jaxhead.geometry.layers.pad_labels(labels, 4)`, and run make_layers.")
 
 
 def _marching_cubes(mask: np.ndarray, affine: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
-    from skimage.measure import marching_cubes
 
     margin = int(math.ceil(3 * sigma)) + 2
     idx = np.argwhere(mask)
@@ -653,7 +654,6 @@ def _is_manifold(V: np.ndarray, F: np.ndarray) -> bool:
 
 def _repair(V: np.ndarray, F: np.ndarray, tissue: Tissue, stage: str) -> tuple[np.ndarray, np.ndarray, dict]:
     """Keep the largest component, fill holes, fix winding/outwardness. Returns counts."""
-    import trimesh
 
     counts = {"components_dropped": 0, "faces_dropped": 0, "hole_faces_added": 0, "faces_flipped": 0}
     n_comp, comp = _face_components(F, len(V))
@@ -695,7 +695,6 @@ def _repair(V: np.ndarray, F: np.ndarray, tissue: Tissue, stage: str) -> tuple[n
 
 
 def _taubin(V: np.ndarray, F: np.ndarray, cfg: SurfaceConfig) -> np.ndarray:
-    import trimesh
 
     if cfg.taubin_iterations == 0:
         return V
@@ -707,7 +706,6 @@ def _taubin(V: np.ndarray, F: np.ndarray, cfg: SurfaceConfig) -> np.ndarray:
 
 
 def _remesh(V: np.ndarray, F: np.ndarray, edge: float, cfg: SurfaceConfig) -> tuple[np.ndarray, np.ndarray]:
-    import fast_simplification
 
     area = float(0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1).sum())
     # faces of an equilateral mesh with edge h covering this area
@@ -718,13 +716,11 @@ def _remesh(V: np.ndarray, F: np.ndarray, edge: float, cfg: SurfaceConfig) -> tu
         if not _is_manifold(Vd, Fd):
             # quadric decimation without a link-condition check can pinch the surface; libigl's
             # shortest-edge decimation keeps it manifold (slower, so only as the fallback)
-            import gpytoolbox
 
             Vd, Fd = gpytoolbox.decimate(V, F.astype(np.int32), num_faces=n_decim,
                                          method="shortest_edge")[:2]
         V, F = Vd, Fd
     if cfg.remesh == "isotropic" and cfg.remesh_iterations > 0:
-        import gpytoolbox
 
         V, F = gpytoolbox.remesh_botsch(np.ascontiguousarray(V, dtype=np.float64),
                                         np.ascontiguousarray(F, dtype=np.int32),
@@ -750,7 +746,6 @@ def _separate(inner: Surface, outer: Surface, gap: float, max_iter: int,
     distance checked afterwards (edge-edge proximity between vertices). A vertex that would move
     more than `max_move` mm in total means the shell is thinner than the gap: ValueError.
     """
-    import gpytoolbox
 
     V, F = inner.vertices.copy(), np.ascontiguousarray(inner.faces, dtype=np.int32)
     OV, OF = outer.vertices, np.ascontiguousarray(outer.faces, dtype=np.int32)
@@ -813,7 +808,7 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
             "`layers` is not strictly nested: " + ", ".join(
                 f"{n} voxels outside the {t.name} shell touch what it should enclose"
                 for t, n in bad.items())
-            + "; run `jaxhead.segment.layers.make_layers(labels)` first.")
+            + "; run `jaxhead.geometry.layers.make_layers(labels)` first.")
     edges = cfg.edges()
     vox_vol = abs(float(np.linalg.det(layers.affine[:3, :3])))
     masks = _solid_masks(labels)

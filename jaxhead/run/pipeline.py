@@ -12,29 +12,14 @@ import json
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
+from .._files import atomic_write_path
 from .config import RunConfig
+from .stages import STAGES
+from .subject import Subject
 
 log = logging.getLogger("jaxhead")
-
-
-@dataclass(frozen=True)
-class Subject:
-    """One head in a run: its name, modality and folder."""
-
-    name: str
-    modality: str
-    root: Path
-
-    def dir(self, stage: str) -> Path:
-        d = self.root / stage
-        d.mkdir(parents=True, exist_ok=True)
-        return d
-
-    def file(self, stage: str, name: str) -> Path:
-        return self.root / stage / name
 
 
 StageFn = Callable[[RunConfig, Subject], dict]
@@ -91,7 +76,6 @@ def stage_hash(cfg: RunConfig, stage: str, previous: str) -> str:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    from .io import atomic_write_path
 
     with atomic_write_path(path) as tmp:
         Path(tmp).write_text(json.dumps(_jsonable(data), indent=2, default=str))
@@ -119,10 +103,9 @@ def run_pipeline(cfg: RunConfig, *, force: bool = False, stages: dict[str, Stage
     Arguments:
         cfg: the run configuration.
         force: rerun stages even when their outputs are up to date.
-        stages: the stage functions by name, in pipeline order (default: `jaxhead.stages.STAGES`).
+        stages: the stage functions by name, in pipeline order (default: `jaxhead.run.stages.STAGES`).
         progress: called with one line of text as stages start and finish (default: logging).
     """
-    from .stages import STAGES
 
     stages = STAGES if stages is None else stages
     names = list(stages) if cfg.stages is None else list(cfg.stages)

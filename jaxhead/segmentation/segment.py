@@ -101,7 +101,7 @@ class SegmentConfig:
             DEFAULT_GAUSSIANS_PV with partial-volume Gaussians).
         partial_volume: add two tied partial-volume Gaussians per pair of bordering layers (PV_PAIRS),
             so that a boundary voxel is labelled with the tissue that fills more than half of it
-            (the tissue at its centre); see jaxhead.segment.em. Off by default (see
+            (the tissue at its centre); see jaxhead.segmentation.em. Off by default (see
             DEFAULT_GAUSSIANS_PV for what it gains and loses).
         beta: Potts MRF strength (mean field over 6 neighbours; 0 = off).
         relax: prior relaxation weight a in [0, 1) (Cardoso et al. 2011; NiftySeg recommends 0.5).

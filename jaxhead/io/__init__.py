@@ -1,0 +1,28 @@
+"""Files in and out: volumes and label maps (NIfTI, Analyze), meshes (.msh, .vtu, .mat), surfaces.  [host]
+
+Every writer is atomic (`atomic_write_path`): a crash never leaves a half-written file under the
+final name.
+"""
+
+from .._files import atomic_write_path as atomic_write_path
+from .._files import file_digest as file_digest
+from .mesh import MESH_EXTENSIONS as MESH_EXTENSIONS
+from .mesh import SURFACE_EXTENSIONS as SURFACE_EXTENSIONS
+from .mesh import load_mesh as load_mesh
+from .mesh import load_surface as load_surface
+from .mesh import save_mesh as save_mesh
+from .mesh import save_surface as save_surface
+from .volume import VOLUME_EXTENSIONS as VOLUME_EXTENSIONS
+from .volume import format_info as format_info
+from .volume import info as info
+from .volume import load_labels as load_labels
+from .volume import load_volume as load_volume
+from .volume import resample as resample
+from .volume import save_labels as save_labels
+from .volume import save_volume as save_volume
+
+__all__ = [
+    "MESH_EXTENSIONS", "SURFACE_EXTENSIONS", "VOLUME_EXTENSIONS", "atomic_write_path",
+    "file_digest", "format_info", "info", "load_labels", "load_mesh", "load_surface",
+    "load_volume", "resample", "save_labels", "save_mesh", "save_surface", "save_volume",
+]
