@@ -160,6 +160,9 @@ def test_jit_equals_eager_and_traced_protocol(model, protocol):
 def test_jacobian_storage_options(model, protocol):
     J = jacobian(model, SIGMA, protocol, tile_tets=1000)
     assert isinstance(J, np.ndarray) and J.shape == (protocol.n_rows, model.n_tets)
+    Jj = jacobian(model, jnp.asarray(SIGMA), protocol, tile_tets=1000)  # JAX in, JAX out
+    assert isinstance(Jj, jax.Array)
+    np.testing.assert_allclose(np.asarray(Jj), J, rtol=1e-12, atol=1e-13 * np.abs(J).max())
     J32 = jacobian(model, SIGMA, protocol, dtype=jnp.float32, tile_tets=1000)
     assert J32.dtype == np.float32
     np.testing.assert_allclose(J32, J, rtol=1e-6, atol=1e-6 * np.abs(J).max())

@@ -1,6 +1,7 @@
 """Conductivity fitting recovers known tissue conductivities from noisy simulated voltages."""
 
 import numpy as np
+import optimistix as optx
 import pytest
 
 from jaxhead.electrodes import place_electrodes, spread_positions
@@ -48,7 +49,7 @@ def test_recovers_conductivities_from_noisy_data(sphere_model, protocol):
     std = noise_std(measured, 0.5)  # what a user knows: the level, applied to the data
     res = fit_conductivities(sphere_model, protocol, measured, init=default_sigma(),
                              noise_std=std)
-    assert res.success
+    assert res.success and res.result == optx.RESULTS.successful
     rel = np.abs(res.sigma / TRUE - 1)
     # The issue's bar: brain, CSF, scalp within 2 %, skull within 10 %.
     assert np.all(rel < [0.02, 0.02, 0.10, 0.02]), rel
@@ -122,3 +123,13 @@ def test_batch_equals_loop(sphere_model, protocol):
         # rtol 1e-6, so estimates agree to well below that.
         np.testing.assert_allclose(b.sigma, one.sigma, rtol=1e-6)
         np.testing.assert_allclose(b.std_error, one.std_error, rtol=1e-6)
+
+
+def test_failure_is_data_with_throw_false(sphere_model, protocol):
+    # Two steps cannot converge: with throw=False the status says so instead of raising.
+    measured = np.asarray(simulate(sphere_model, TRUE, protocol))
+    res = fit_conductivities(sphere_model, protocol, measured, init=default_sigma(), max_steps=2,
+                             throw=False)
+    assert res.result == optx.RESULTS.nonlinear_max_steps_reached and not res.success
+    with pytest.raises(Exception, match="maximum number of steps"):
+        fit_conductivities(sphere_model, protocol, measured, init=default_sigma(), max_steps=2)

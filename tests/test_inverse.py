@@ -6,6 +6,7 @@ from scipy.spatial import Delaunay
 
 from jaxhead import TetMesh, orient_tets
 from jaxhead.inverse import (
+    Grid,
     TSVD,
     Tikhonov,
     add_noise,
@@ -197,6 +198,7 @@ def test_perturbation_and_metrics():
     c = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     img = (np.linalg.norm(c - [5, -3, 2], axis=1) <= 8).astype(float)
     m = image_metrics(img, c, np.ones(len(c)), [5, -3, 2], 8.0)
+    assert m == image_metrics(img, Grid(np.full(0, -1), c, np.ones(len(c)), 1.0), [5, -3, 2], 8.0)
     assert m.localisation_error_mm < 1e-9
     assert abs(m.volume_ratio - 1) < 0.03 and abs(m.diameter_mm - 16) < 0.3
     m = image_metrics(-img, c, np.ones(len(c)), [5, -3, 2], 8.0)

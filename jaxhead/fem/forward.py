@@ -605,9 +605,11 @@ def jacobian(model: ForwardModel, sigma, protocol, *, per: str = "tet", nodes=No
         return_volts: also return the (n_rows,) voltages (from the same solves).
 
     Returns:
-        J in V / (S/m): (n_rows, n_tets) (a NumPy array when called with concrete inputs, a JAX
-        array under jit) or (n_rows, 4); with return_volts, (J, volts).
+        J in V / (S/m): (n_rows, n_tets) or (n_rows, 4); with return_volts, (J, volts). JAX in,
+        JAX out: a JAX array when `sigma` is one (or under jit), a NumPy array for NumPy input
+        (and `out` itself when given).
     """
+    jax_in = isinstance(sigma, jax.Array)
     if per not in ("tet", "tissue"):
         raise ValueError(f"`per` = {per!r}; use 'tet' or 'tissue'.")
     rows, current = _rows_of(model, protocol)
@@ -634,6 +636,9 @@ def jacobian(model: ForwardModel, sigma, protocol, *, per: str = "tet", nodes=No
         J = (scale[:, None] * G[:, d_idx, m_idx].T).astype(out_dtype)
     else:
         J = _tet_rows(model, nodes, fields, d_idx, m_idx, scale, out_dtype, int(tile_tets), out)
+    if out is None and not isinstance(J, jax.core.Tracer):
+        J = jnp.asarray(J) if jax_in else np.asarray(J)
+        volts = jnp.asarray(volts) if jax_in else np.asarray(volts)
     return (J, volts) if return_volts else J
 
 

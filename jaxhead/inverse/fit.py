@@ -47,7 +47,8 @@ class FitResult(eqx.Module):
             the Direct solver; derivatives reuse each factor; in a batched fit, the batch's
             total divided by the batch size). Estimated as steps + 1 for iterative solvers.
         condition: condition number of the weighted J^T J (in log-parameters).
-        success: whether optimistix reported success.
+        result: optimistix's status (`optx.RESULTS`; `optx.RESULTS.successful` on success).
+        success: `result == optx.RESULTS.successful`, as a Python bool.
     """
 
     sigma: np.ndarray
@@ -60,6 +61,7 @@ class FitResult(eqx.Module):
     n_steps: int = 0
     n_forward: int = 0
     condition: float = 0.0
+    result: optx.RESULTS = eqx.field(default_factory=lambda: optx.RESULTS.successful)
     success: bool = True
 
     def table(self, truth=None) -> str:
@@ -87,8 +89,8 @@ class LineSearchGaussNewton(optx.AbstractGaussNewton):
     benchmarks/fit.py it converges in 11-16 steps and 14-24 forward solves where
     `optx.LevenbergMarquardt` takes 23-37 steps and 54-81 solves, to the same estimates: for
     small-residual problems with a full-rank Jacobian the Gauss-Newton step is nearly the Newton
-    step (Nocedal & Wright 2006, sec. 10.3). Prefer Levenberg-Marquardt (the default) when the
-    Jacobian may be rank-deficient (a tissue the data do not see).
+    step (Nocedal & Wright 2006, sec. 10.3). It is `fit_conductivities`' default; prefer
+    Levenberg-Marquardt when the Jacobian may be rank-deficient (a tissue the data do not see).
 
     Arguments:
         rtol, atol: optimistix's Cauchy termination tolerances.
@@ -100,6 +102,10 @@ class LineSearchGaussNewton(optx.AbstractGaussNewton):
     descent: optx.NewtonDescent = optx.NewtonDescent()
     search: optx.BacktrackingArmijo = optx.BacktrackingArmijo()
     verbose: Callable = eqx.field(static=True, default=lambda **kwargs: None)
+
+
+def _default_solver():
+    return LineSearchGaussNewton(rtol=1e-6, atol=1e-6)
 
 
 def _names(fit) -> tuple[str, ...]:
@@ -234,7 +240,7 @@ def _factor_count(model):
     return handle, getattr(handle, "n_factorisations", None)
 
 
-def _result(theta, prob: _Problem, labels, *, n_steps, n_forward, success, ill_conditioned):
+def _result(theta, prob: _Problem, labels, *, n_steps, n_forward, result, ill_conditioned):
     r, J = _jacobian_log(theta, prob)
     # Gauss-Newton covariance in log-parameters: (J^T J)^-1 for unit-variance weighted
     # residuals (Seber & Wild 1989, Nonlinear Regression, sec. 2.1); delta method dx = x dlog x.
@@ -261,7 +267,8 @@ def _result(theta, prob: _Problem, labels, *, n_steps, n_forward, success, ill_c
         sigma=np.asarray(sigma), contact_impedance=np.asarray(z), fitted=tuple(labels),
         estimates=est, std_error=se, correlation=corr,
         residual_norm=float(jnp.linalg.norm(r)), n_steps=int(n_steps),
-        n_forward=int(n_forward), condition=cond, success=bool(success))
+        n_forward=int(n_forward), condition=cond, result=result,
+        success=bool(result == optx.RESULTS.successful))
 
 
 def fit_conductivities(model, protocol, measured, *, init, fit: Sequence[str] = TISSUE_NAMES,
@@ -288,11 +295,14 @@ def fit_conductivities(model, protocol, measured, *, init, fit: Sequence[str] = 
             space between its bounds. Default: init / 1000 to init * 1000 (and the same factors on
             the contact impedance), wide enough not to bias a fit and tight enough that a trial
             step of the optimiser cannot make the FEM matrix numerically singular.
-        solver: an optimistix least-squares solver (default LevenbergMarquardt(rtol=1e-6,
-            atol=1e-6): in the sigmoid-log parameters 1e-6 is a relative change of ~3e-6 in
-            sigma, far below any standard error at realistic noise).
+        solver: an optimistix least-squares solver. Default `LineSearchGaussNewton(rtol=1e-6,
+            atol=1e-6)`, the measured best (`benchmarks/fit.py`: 14 forward solves where
+            `optx.LevenbergMarquardt` took 174 on a held-out sphere, to the same estimates); pass
+            `optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6)` when the data may not see a fitted
+            tissue (a rank-deficient Jacobian). In the sigmoid-log parameters 1e-6 is a relative
+            change of ~3e-6 in sigma, far below any standard error at realistic noise.
         max_steps: optimiser step limit.
-        throw: raise when optimistix fails (else `success=False`).
+        throw: raise when optimistix fails (else the failure is `result`, and `success=False`).
         ill_conditioned: warn when cond(J^T J) exceeds this.
         approx_error: an `ApproximationError` of `model` against a more accurate model of the
             head (`jaxhead.approximation_error`): its mean is added to the model's
@@ -310,13 +320,12 @@ def fit_conductivities(model, protocol, measured, *, init, fit: Sequence[str] = 
                          "(use fit_conductivities_batch for several data vectors).")
     prob = eqx.tree_at(lambda p: p.measured, prob, jnp.asarray(measured))
     handle, count0 = _factor_count(model)
-    solver = solver or optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6)
+    solver = solver or _default_solver()
     sol = optx.least_squares(_residuals, solver, theta0, prob, max_steps=max_steps, throw=throw)
     n_steps = int(sol.stats.get("num_steps", 0))
     n_forward = handle.n_factorisations - count0 if count0 is not None else n_steps + 1
     return _result(sol.value, prob, labels, n_steps=n_steps, n_forward=n_forward,
-                   success=sol.result == optx.RESULTS.successful,
-                   ill_conditioned=ill_conditioned)
+                   result=sol.result, ill_conditioned=ill_conditioned)
 
 
 def fit_conductivities_batch(model, protocol, measured, *, init,
@@ -343,16 +352,16 @@ def fit_conductivities_batch(model, protocol, measured, *, init,
     if measured.ndim != 2 or measured.shape[0] < 1:
         raise ValueError(f"`measured` has shape {measured.shape}; pass (n_batch, n_rows).")
     handle, count0 = _factor_count(model)
-    solver = solver or optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6)
+    solver = solver or _default_solver()
 
     @eqx.filter_vmap(in_axes=(eqx.if_array(0), None))
     def solve(m, p):
         p = eqx.tree_at(lambda q: q.measured, p, m)
         sol = optx.least_squares(_residuals, solver, theta0, p, max_steps=max_steps,
                                  throw=throw)
-        return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+        return sol.value, sol.result, sol.stats["num_steps"]
 
-    thetas, ok, steps = solve(jnp.asarray(measured), prob)
+    thetas, results, steps = solve(jnp.asarray(measured), prob)
     b = measured.shape[0]
     n_forward = ((handle.n_factorisations - count0) / b if count0 is not None
                  else float(np.max(steps)) + 1)
@@ -360,6 +369,7 @@ def fit_conductivities_batch(model, protocol, measured, *, init,
     for i in range(b):
         p = eqx.tree_at(lambda q: q.measured, prob, jnp.asarray(measured[i]))
         out.append(_result(thetas[i], p, labels, n_steps=int(steps[i]),
-                           n_forward=round(n_forward), success=bool(ok[i]),
+                           n_forward=round(n_forward),
+                           result=jax.tree.map(lambda x, i=i: x[i], results),
                            ill_conditioned=ill_conditioned))
     return out

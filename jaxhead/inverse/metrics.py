@@ -6,6 +6,8 @@
 import equinox as eqx
 import numpy as np
 
+from .grid import Grid
+
 
 class ImageMetrics(eqx.Module):
     """Figures of merit of a reconstructed blob.
@@ -24,17 +26,31 @@ class ImageMetrics(eqx.Module):
     peak_value: float
 
 
-def image_metrics(image, centres_mm, volumes_mm3, true_centre_mm, true_radius_mm: float,
-                  *, threshold: float = 0.5, sign: int = 0) -> ImageMetrics:
+def image_metrics(image, grid, *args, threshold: float = 0.5, sign: int = 0) -> ImageMetrics:
     """Localisation error, size and volume ratio of a reconstructed perturbation.
 
+    Called as ``image_metrics(image, grid, true_centre_mm, true_radius_mm)`` with the `Grid` the
+    image lives on, or ``image_metrics(image, centres_mm, volumes_mm3, true_centre_mm,
+    true_radius_mm)`` for any other elements (e.g. tets).
+
     Arguments:
-        image: (n,) reconstructed change per element (tets or grid cells).
-        centres_mm: (n, 3) element centres; volumes_mm3: (n,) element volumes.
-        true_centre_mm, true_radius_mm: the perturbation's ball.
+        image: (n,) reconstructed change per element (grid cells or tets).
+        grid: the `Grid` of the image (its cell centres and volumes), or (n, 3) element centres
+            in mm followed by (n,) element volumes in mm^3.
+        true_centre_mm, true_radius_mm: the perturbation's ball (mm).
         threshold: keep elements with value >= threshold * peak (0.5: half maximum).
         sign: +1 or -1 for the perturbation's sign; 0 takes the sign of the largest |value|.
     """
+    if isinstance(grid, Grid):
+        centres_mm, volumes_mm3 = grid.centres, grid.volumes
+        expected = 2
+    else:
+        centres_mm, volumes_mm3, args = grid, args[0] if args else None, args[1:]
+        expected = 2
+    if len(args) != expected:
+        raise TypeError("call image_metrics(image, grid, true_centre_mm, true_radius_mm) or "
+                        "image_metrics(image, centres_mm, volumes_mm3, true_centre_mm, true_radius_mm).")
+    true_centre_mm, true_radius_mm = args
     x = np.asarray(image, dtype=np.float64)
     c = np.asarray(centres_mm, dtype=np.float64)
     v = np.asarray(volumes_mm3, dtype=np.float64)
