@@ -25,6 +25,7 @@ import pytest
 from jaxhead.electrodes import Electrodes
 from jaxhead.fem.forward import build_forward_model, jacobian, potentials, simulate
 from jaxhead.protocol import Protocol, adjacent
+from conftest import fem_solvers
 from test_fem_assembly import dense_reference, small_model
 
 SIGMA = np.array([0.3, 1.79, 0.018, 0.44])
@@ -220,3 +221,28 @@ def test_bad_inputs_raise(model, protocol, mesh_elec):
     with pytest.raises(Exception, match="volume"):
         jax.block_until_ready(eqx.filter_jit(
             lambda m, x: simulate(m, SIGMA, protocol, nodes=x))(model, jnp.asarray(flat)))
+
+
+@pytest.mark.parametrize("name,solver,rtol", fem_solvers(), ids=[s[0] for s in fem_solvers()])
+def test_invariants_hold_for_every_solver(mesh_elec, protocol, name, solver, rtol):
+    # Reciprocity (random per-tet sigma), scaling sigma -> c sigma, z -> z / c (voltages / c),
+    # and agreement with the dense reference of the whole CEM system, for each solver.
+    mesh, elec = mesh_elec
+    model = build_forward_model(mesh, elec, solver=solver)
+    sigma = 0.05 + np.random.default_rng(3).random(mesh.n_tets)
+    rows = np.array([[0, 3, 5, 6], [1, 5, 2, 7], [4, 6, 0, 1]])
+    v = np.asarray(simulate(model, sigma, Protocol(rows, 1e-3)))
+    w = np.asarray(simulate(model, sigma, Protocol(rows[:, [2, 3, 0, 1]], 1e-3)))
+    np.testing.assert_allclose(v, w, rtol=rtol, atol=rtol * np.abs(v).max())
+    vc = np.asarray(simulate(model, 3.7 * sigma, Protocol(rows, 1e-3),
+                             contact_impedance=elec.contact_impedance / 3.7))
+    np.testing.assert_allclose(vc, v / 3.7, rtol=rtol, atol=rtol * np.abs(v).max())
+    # dense reference: ground electrode 0 (drop its row and column), drive 1e-3 A from 0 to 3
+    A = dense_reference(mesh, elec, sigma)
+    n = mesh.n_nodes
+    keep = np.r_[0:n, n + 1:n + elec.contact_impedance.shape[0]]
+    b = np.zeros(A.shape[0])
+    b[n + 3] = -1e-3  # current leaves through electrode 3; electrode 0 (ground) sources it
+    U = np.zeros(elec.contact_impedance.shape[0])
+    U[1:] = np.linalg.solve(A[np.ix_(keep, keep)], b[keep])[n:]
+    np.testing.assert_allclose(v[0], U[5] - U[6], rtol=rtol, atol=rtol * np.abs(v).max())

@@ -114,10 +114,15 @@ def _errors(h_list, model12):
     return np.array(out)
 
 
-def test_refinement_reduces_error(model12):
-    # measured RDM 0.14 -> 0.066 for h 16 -> 12 mm (order ~2.6); ask for at least first order
-    err = _errors([16.0, 12.0], model12)
-    assert err[1, 0] < err[0, 0] * (12.0 / 16.0), err
+def test_convergence_order_coarse(model12):
+    # The fast suite's convergence check: h = 20, 16, 12 mm, measured RDM 0.23, 0.14, 0.066
+    # (fitted order ~2.4; P1 potentials converge like h^2 away from the electrode edges); ask
+    # for more than first order, and a monotone decrease.
+    h = np.array([20.0, 16.0, 12.0])
+    err = _errors(list(h), model12)
+    order = np.polyfit(np.log(h), np.log(err[:, 0]), 1)[0]
+    assert order > 1.2, (order, err)
+    assert np.all(np.diff(err[:, 0]) < 0), err
 
 
 @pytest.mark.slow
