@@ -1,5 +1,6 @@
 """Tissue classes and their default low-frequency conductivities."""
 
+import math
 from collections.abc import Mapping
 from enum import IntEnum
 
@@ -85,3 +86,53 @@ def sigma_per_tet(mesh, sigma):
         raise ValueError(f"`sigma` has shape {tuple(sigma.shape)}; pass (4,) per-tissue values "
                          f"ordered {list(TISSUE_NAMES)} or ({n},) per-tet values.")
     return sigma[labels - 1]
+
+
+def per_tissue(value, name: str, *, allowed=TISSUES, allow_none: bool = False,
+               positive: bool = True, unit: str = "mm") -> dict[Tissue, float | None]:
+    """A per-tissue setting, validated: one number for every tissue, or a mapping per tissue.
+
+    The one parser behind every per-tissue config field (`edge_mm`, `closing_radius_mm`, ...).
+
+    Arguments:
+        value: a number (all of `allowed`), a mapping keyed by tissue name or `Tissue`, or None
+            (with `allow_none`: no value for any tissue).
+        name: the argument's name, for error messages.
+        allowed: the tissues the setting has (default all four).
+        allow_none: a mapping may leave tissues out (their value is None).
+        positive: values must be > 0 (else >= 0).
+        unit: the unit named in error messages.
+
+    Returns:
+        {Tissue: float (or None)} over `allowed`, in `allowed`'s order.
+    """
+    names = [t.name.lower() for t in allowed]
+    if value is None:
+        if not allow_none:
+            raise ValueError(f"`{name}` is None; give a number ({unit}) or a mapping over {names}.")
+        return {t: None for t in allowed}
+    if isinstance(value, Mapping):
+        out: dict[Tissue, object] = {t: None for t in allowed}
+        for key, v in value.items():
+            try:
+                t = Tissue.parse(key)
+            except ValueError as e:
+                raise ValueError(f"`{name}` has key {key!r}: {e}") from None
+            if t not in allowed:
+                raise ValueError(f"`{name}` has key {key!r}; allowed keys are {names}.")
+            out[t] = v
+        missing = [t.name.lower() for t, v in out.items() if v is None]
+        if missing and not allow_none:
+            raise ValueError(f"`{name}` lacks {missing}; give all of {names} or a single number "
+                             "for all.")
+    else:
+        out = {t: value for t in allowed}
+    for t, v in out.items():
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(v) or (v <= 0 if positive else v < 0):
+            need = "a positive" if positive else "a finite, non-negative"
+            raise ValueError(f"`{name}[{t.name.lower()}]` must be {need} number ({unit}), got {v!r}.")
+        out[t] = float(v)
+    return out
