@@ -349,3 +349,23 @@ def test_os_errors_in_a_stage_name_the_file(tmp_path):
 
     with pytest.raises(StageError, match=r"\[mri\] input: Permission denied: .*scan.nii.gz"):
         _run(_cfg(tmp_path), {"input": unwritable})
+
+
+def test_what_the_library_logs_is_kept_in_the_stage_folder(tmp_path):
+    # STYLE.md: a repair (relabelled voxels, a repaired surface) is logged at INFO and shown in
+    # the run's report; the stage's log.txt is one of its outputs.
+    import logging
+
+    @stage(config=("input",))
+    def repairing(cfg, subject):
+        logging.getLogger("jaxhead.phantom").info("5870 voxels relabelled to their enclosing tissue")
+        logging.getLogger("jaxhead.phantom").debug("not kept")
+        (subject.dir("input") / "scan.txt").write_text("scan")
+        return {}
+
+    _run(_cfg(tmp_path), {"input": repairing})
+    text = (tmp_path / "run/mri/input/log.txt").read_text()
+    assert text == "INFO jaxhead.phantom: 5870 voxels relabelled to their enclosing tissue\n"
+    done = json.loads((tmp_path / "run/mri/input/done.json").read_text())
+    assert "log.txt" in done["outputs"]
+    assert logging.getLogger("jaxhead").level == logging.NOTSET  # restored

@@ -14,6 +14,7 @@ the previous complete folder (or, killed between the two renames, none), never a
 at a time works in a run folder (`lock.py`).
 """
 
+import contextlib
 import dataclasses
 import datetime
 import hashlib
@@ -230,6 +231,40 @@ def _commit(tmp: Path, final: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+class _StageLog(logging.Handler):
+    """Collects the library's log records (repairs, relabelled voxels ...) while a stage runs."""
+
+    def __init__(self):
+        super().__init__(logging.INFO)
+        self.lines: list[str] = []
+
+    def emit(self, record):
+        if record.name != log.name:  # the pipeline's own progress lines stay out
+            self.lines.append(f"{record.levelname} {record.name}: {record.getMessage()}")
+
+
+@contextlib.contextmanager
+def _capture_log(folder: Path):
+    """Write what the library logs at INFO and above during the block to `folder`/log.txt.
+
+    STYLE.md: a repair is logged at INFO and shown in the run's report; the report page shows
+    each stage's log.txt.
+    """
+    handler = _StageLog()
+    lib = logging.getLogger("jaxhead")
+    old_level = lib.level
+    if lib.getEffectiveLevel() > logging.INFO:
+        lib.setLevel(logging.INFO)
+    lib.addHandler(handler)
+    try:
+        yield
+    finally:
+        lib.removeHandler(handler)
+        lib.setLevel(old_level)
+    if handler.lines:
+        (folder / "log.txt").write_text("\n".join(handler.lines) + "\n")
+
+
 def _oserror_text(e: OSError) -> str:
     if e.filename:
         return f"{e.strerror or type(e).__name__}: {str(e.filename)!r}"
@@ -337,7 +372,7 @@ def _run_stage(cfg, subject: Subject, name: str, fn: StageFn, spec: StageSpec, f
     staged = subject.staged(name, tmp, spec.reads_for(cfg))
     t0 = time.perf_counter()
     try:
-        with heartbeat(label, say, every_s=heartbeat_s):
+        with heartbeat(label, say, every_s=heartbeat_s), _capture_log(tmp):
             try:
                 summary = fn(cfg, staged) or {}
             except ValueError as e:
