@@ -30,6 +30,10 @@ def test_run_resumes(tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", str(cfg)]) == 0
     assert capsys.readouterr().out.count("up to date") == 2
+    page = tmp_path / "run/report.html"
+    assert "data:image/png;base64," in page.read_text()  # the overlay and layers figures
+    page.unlink()
+    assert main(["report", str(cfg)]) == 0 and page.exists()
 
 
 def test_errors_are_reported_not_raised(tmp_path, capsys):
