@@ -5,11 +5,12 @@ import dataclasses
 import logging
 import os
 import sys
+import traceback
 from pathlib import Path
 
 from . import io
 from .phantom import make_head
-from .run import load_config, run_pipeline
+from .run import load_config, run_pipeline, write_report
 
 
 def _setup_runtime() -> None:
@@ -24,10 +25,22 @@ def _cmd_run(args) -> int:
     cfg = load_config(args.config)
     if args.out:
         cfg = dataclasses.replace(cfg, out_dir=args.out)
-    results = run_pipeline(cfg, force=args.force, progress=lambda s: print(s, flush=True))
+    results = run_pipeline(cfg, force=args.force, wait=args.wait,
+                           progress=lambda s: print(s, flush=True))
     print(f"run folder: {cfg.run_dir.resolve()}")
     for subject, stages in results.items():
         print(f"  {subject}: {', '.join(stages)}")
+    return 0
+
+
+def _cmd_report(args) -> int:
+    cfg = load_config(args.config)
+    if args.out:
+        cfg = dataclasses.replace(cfg, out_dir=args.out)
+    if not cfg.run_dir.is_dir():
+        raise FileNotFoundError(f"run folder {str(cfg.run_dir)!r} does not exist; run "
+                                f"`jaxhead run {args.config}` first.")
+    print(f"wrote {write_report(cfg)}")
     return 0
 
 
@@ -54,13 +67,22 @@ def build_parser() -> argparse.ArgumentParser:
         prog="jaxhead",
         description="Subject-specific, differentiable finite-element head models for EIT.")
     p.add_argument("-v", "--verbose", action="store_true", help="log at DEBUG level")
+    p.add_argument("--debug", action="store_true",
+                   help="on an error, print the full traceback (default: one line)")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="run the stages of a TOML config into its run folder")
     r.add_argument("config", help="TOML run config, e.g. configs/demo.toml")
     r.add_argument("--force", action="store_true", help="rerun stages that are up to date")
     r.add_argument("--out", help="run folder (overrides the config's out_dir)")
+    r.add_argument("--wait", action="store_true",
+                   help="if another jaxhead run uses the folder, wait for it (default: refuse)")
     r.set_defaults(fn=_cmd_run)
+
+    rp = sub.add_parser("report", help="(re)write <run folder>/report.html from a run's files")
+    rp.add_argument("config", help="the run's TOML config")
+    rp.add_argument("--out", help="run folder (overrides the config's out_dir)")
+    rp.set_defaults(fn=_cmd_report)
 
     ph = sub.add_parser("phantom", help="write a synthetic head scan and its labels as NIfTI")
     ph.add_argument("--modality", choices=["mri", "ct"], default="mri")
@@ -83,9 +105,24 @@ def main(argv: list[str] | None = None) -> int:
     _setup_runtime()
     try:
         return args.fn(args)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"jaxhead: error: {e}", file=sys.stderr)
+    except KeyboardInterrupt:
+        print("jaxhead: interrupted; finished stages are kept, a rerun resumes.", file=sys.stderr)
+        return 130
+    except (ValueError, OSError, MemoryError) as e:
+        # Expected failures (bad input, config, files, folder in use): one line, exit 2.
+        if args.debug:
+            traceback.print_exc()
+        text = str(e) if not isinstance(e, MemoryError) else f"out of memory: {e}"
+        if isinstance(e, OSError) and e.filename and str(e.filename) not in text:
+            text = f"{text} ({e.filename})"
+        print(f"jaxhead: error: {' '.join(text.split())}", file=sys.stderr)
         return 2
+    except Exception as e:  # a bug: still one line, the traceback on request
+        if args.debug:
+            traceback.print_exc()
+        print(f"jaxhead: internal error: {type(e).__name__}: {' '.join(str(e).split())} "
+              "(rerun with --debug for the traceback, and please report it)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -168,6 +168,14 @@ class Protocol(eqx.Module):
                 f.write(text)
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _read_table(path) -> tuple[list[tuple[int, list[float], str]], float | None]:
     """Numeric lines of a CSV/whitespace file: [(line number, values, text)], current_a comment.
 
@@ -186,12 +194,15 @@ def _read_table(path) -> tuple[list[tuple[int, list[float], str]], float | None]
             if key.strip() == "current_a":
                 file_current = float(val)
             continue
+        fields = s.replace(",", " ").replace(";", " ").split()
         try:
-            vals = [float(p) for p in s.replace(",", " ").replace(";", " ").split()]
+            vals = [float(p) for p in fields]
         except ValueError:
-            if not out:  # header
+            if not out and not any(_is_number(p) for p in fields):  # a header: no numbers at all
                 continue
-            raise ValueError(f"{path}:{lineno}: not numbers: {line!r}.") from None
+            bad = [p for p in fields if not _is_number(p)]
+            raise ValueError(f"{path}:{lineno}: not numbers: {bad} in {line!r}; fix the value "
+                             "(a header line holds names only, no numbers).") from None
         out.append((lineno, vals, line))
     return out, file_current
 

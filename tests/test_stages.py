@@ -1,5 +1,6 @@
 """The forward and inverse pipeline stages on a ready-made mesh (a 4-shell sphere)."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -8,6 +9,7 @@ import pytest
 from jaxhead import save_mesh
 from jaxhead.run.config import (ElectrodeConfig, ForwardConfig, InputConfig, InverseConfig,
                             RunConfig)
+from jaxhead.run import StageError
 from jaxhead.run.pipeline import run_pipeline
 from jaxhead.protocol import ProtocolConfig
 from sphere_mesh import structured_sphere_mesh
@@ -80,6 +82,19 @@ def test_inverse_stage_fits_measured_voltages(tmp_path):
     lines = []
     inv2 = run_pipeline(cfg, progress=lines.append)["mri"]["inverse"]
     assert any("inverse: running" in s for s in lines) and inv2["fit_sigma"] != inv["fit_sigma"]
+    # Issue 14: a one-column file in reversed order was fitted (NaN standard errors, exit 0).
+    volts = load_voltages(measured, p)
+    one_col = tmp_path / "one_column.csv"
+    one_col.write_text("volts\n" + "".join(f"{v!r}\n" for v in volts[::-1]))
+    bad = dataclasses.replace(cfg, inverse=InverseConfig(cell_mm=15.0, measured_path=str(one_col)))
+    with pytest.raises(StageError, match="one_column.csv.*protocol"):
+        run_pipeline(bad, progress=lambda s: None, report=False)
+    # Issue 14: a zero voltage ended a fit after a minute naming neither file nor line.
+    zero = volts.copy()
+    zero[3] = 0.0
+    save_voltages(measured, p, zero)
+    with pytest.raises(StageError, match=r"measured.csv.*protocol row 3 .*is 0.0 V.*noise_floor"):
+        run_pipeline(cfg, progress=lambda s: None, report=False)
     with pytest.raises(ValueError, match="measured_path"):
         InverseConfig(measured_path=str(tmp_path / "missing.csv"))
     with pytest.raises(ValueError, match="noise_floor"):
@@ -105,21 +120,23 @@ def test_inverse_stage_fit_with_the_approximation_error(tmp_path):
     p = opposite(16)
     save_voltages(tmp_path / "measured.csv", p,
                   np.asarray(simulate(build_forward_model(fine, el), truth, p)))
-    fits = {}
-    for ae_mesh in (None, str(tmp_path / "fine.vtu")):
-        cfg = RunConfig(
+    def cfg(ae_mesh):
+        return RunConfig(
             out_dir=str(tmp_path / "run"), stages=("inverse",),
             input=InputConfig(modalities=("mri",)),
             electrodes=ElectrodeConfig(layout=16, radius_mm=10.0),
             protocol=ProtocolConfig(kind="opposite"),
             inverse=InverseConfig(cell_mm=15.0, measured_path=str(tmp_path / "measured.csv"),
                                   approx_error_mesh=ae_mesh))
-        fits[ae_mesh] = run_pipeline(cfg, progress=lambda s: None)["mri"]["inverse"]
-    plain, corrected = fits[None], fits[str(tmp_path / "fine.vtu")]
-    err_plain = np.abs(np.asarray(plain["fit_sigma"]) / truth - 1)
+
+    # Without the error model the fit runs away (brain 200 S/m, NaN standard errors): an error
+    # naming the file, not a result (it was written as one, exit 0, before issue 14).
+    with pytest.raises(StageError, match="measured.csv.*no finite standard errors"):
+        run_pipeline(cfg(None), progress=lambda s: None, report=False)
+    corrected = run_pipeline(cfg(str(tmp_path / "fine.vtu")), progress=lambda s: None,
+                             report=False)["mri"]["inverse"]
     err = np.abs(np.asarray(corrected["fit_sigma"]) / truth - 1)
-    print("plain", err_plain, "with the error model", err)
+    print("with the error model", err)
     assert corrected["approx_error_rel"] > 0.01 and "approx_error" in corrected["seconds"]
-    assert np.max(err_plain) > 0.05, err_plain
     assert np.all(err < 0.03), err  # measured: 0.3 / 0.8 / 0.04 / 0.03 %
     assert "approximation-error model" in (tmp_path / "run/mri/inverse/fit.txt").read_text()

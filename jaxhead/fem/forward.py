@@ -103,7 +103,7 @@ class ForwardModel(eqx.Module):
 
 
 def build_forward_model(mesh: TetMesh, electrodes, *, solver: AbstractSolver | None = None,
-                        sigma=None) -> ForwardModel:
+                        sigma=None, allow_float32: bool = False) -> ForwardModel:
     """Set up the CEM forward problem of a mesh once: pattern, scatter plan, solver set-up.
 
     Arguments:
@@ -113,6 +113,9 @@ def build_forward_model(mesh: TetMesh, electrodes, *, solver: AbstractSolver | N
         solver: `Direct()` (default; MKL PARDISO, SciPy fallback) or `BlockCG(...)`.
         sigma: conductivities (4,) or (n_tets,) in S/m used by set-ups that look at values
             (the multigrid's aggregation); default `jaxhead.tissue.default_sigma()`.
+        allow_float32: build the model although JAX runs in float32 (`jax_enable_x64` off).
+            The FEM is then wrong at the 1e-4 level (CG stalls near 1e-6), so by default this
+            is refused.
 
     Returns:
         A ForwardModel for `simulate`, `potentials` and `jacobian`.
@@ -120,6 +123,11 @@ def build_forward_model(mesh: TetMesh, electrodes, *, solver: AbstractSolver | N
 
     if not isinstance(mesh, TetMesh):
         raise ValueError(f"`mesh` must be a jaxhead TetMesh, got {type(mesh).__name__}.")
+    if not jax.config.jax_enable_x64 and not allow_float32:
+        raise ValueError(
+            "JAX runs in float32 (`jax_enable_x64` is off), and the FEM in float32 is wrong at the "
+            "1e-4 level; call `jax.config.update(\"jax_enable_x64\", True)` at your program's "
+            "start (or set JAX_ENABLE_X64=1), or pass allow_float32=True to accept it.")
     solver = Direct() if solver is None else solver
     if not isinstance(solver, AbstractSolver):
         raise ValueError(
@@ -201,10 +209,13 @@ def _check_sigma(model: ForwardModel, sigma):
         sigma = sigma.astype(float)
     if not _is_tracer(sigma):
         s = np.asarray(sigma)
-        if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        bad = ~(np.isfinite(s) & (s > 0))
+        if np.any(bad):
+            i = np.flatnonzero(bad)
             raise ValueError(
-                f"`sigma` must be finite and > 0 S/m, got min {s.min()}; conductivities are "
-                "positive (e.g. jaxhead.tissue.default_sigma()).")
+                f"`sigma` must be finite and > 0 S/m, got {s[i[:4]].tolist()} at index "
+                f"{i[:4].tolist()}{f' ({i.size} values)' if i.size > 4 else ''}; conductivities "
+                "are positive and finite (e.g. jaxhead.tissue.default_sigma()).")
     return sigma
 
 

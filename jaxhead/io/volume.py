@@ -145,6 +145,17 @@ def _open_image(path: str | os.PathLike) -> tuple[Any, Path]:
     return img, path
 
 
+def _singular_affine(img) -> str | None:
+    """Why an image's affine cannot place voxels in the world (None: it can)."""
+    a = np.asarray(img.affine, dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        return "contains NaN or Inf"
+    det = np.linalg.det(a[:3, :3])
+    if abs(det) < 1e-12:
+        return f"is singular (det of its 3x3 part = {det:.3g}; voxel sizes {voxel_sizes(a).round(4).tolist()} mm)"
+    return None
+
+
 def _read_data(img, path: Path) -> np.ndarray:
     """All voxels as float64 with scl_slope/scl_inter applied; truncation as ValueError."""
     try:
@@ -192,6 +203,12 @@ def _load_3d(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Path]:
             )
         log.info("%s: squeezed single-volume %dD image of shape %s to 3D", path, len(shape), shape)
         img = img.slicer[(slice(None),) * 3 + (0,) * (len(shape) - 3)]
+    bad = _singular_affine(img)
+    if bad:
+        raise ValueError(
+            f"{str(path)!r}: the header's voxel-to-world affine (sform/qform) {bad}, so voxels "
+            "have no position in mm; fix the header (e.g. nibabel `img.set_sform(affine, 1)` or "
+            "`fslorient`) and save the image again.")
     _warn_orientation(img, path)
     codes = "".join(nib.aff2axcodes(img.affine))
     img = nib.as_closest_canonical(img)
@@ -379,7 +396,11 @@ def info(path: str | os.PathLike) -> dict[str, Any]:
     stats = ((float(finite.min()), float(finite.max()), float(finite.mean()))
              if finite.size else (None, None, None))
     zooms = tuple(float(z) for z in hdr.get_zooms()[:3])
-    orientation = "".join(nib.aff2axcodes(img.affine)) if len(shape) >= 3 else "n/a"
+    bad = _singular_affine(img)
+    if bad:
+        orientation = f"none: the affine {bad}"
+    else:
+        orientation = "".join(nib.aff2axcodes(img.affine)) if len(shape) >= 3 else "n/a"
     return {
         "path": str(path),
         "format": _format_name(img),
@@ -453,6 +474,46 @@ def _parse_voxel_mm(voxel_mm) -> np.ndarray:
     return v
 
 
+def available_memory_bytes() -> int | None:
+    """Memory this machine can still give a process (Linux MemAvailable; None if unknown)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB", "EiB"):
+        if n < 1024 or unit == "EiB":
+            return f"{n:.3g} {unit}"
+        n /= 1024
+    return f"{n:.3g} EiB"
+
+
+def _check_memory(new_shape, old_vox, shape, new_vox) -> None:
+    """Refuse up front a resample whose result would not fit in the machine's memory."""
+    n = float(np.prod(new_shape.astype(np.float64)))
+    # float64 result, plus the float64 copy and filtered input on the way: three arrays
+    need = 8.0 * (n + 2 * float(np.prod(shape)))
+    avail = available_memory_bytes()
+    if avail is not None and need > avail:
+        raise ValueError(
+            f"resampling to `voxel_mm` = {new_vox.tolist()} would need about {_bytes(need)} "
+            f"(shape {tuple(int(k) for k in new_shape)}) but {_bytes(avail)} are available; the "
+            f"input's voxel size {old_vox.round(4).tolist()} mm (field of view "
+            f"{(shape * old_vox).round(1).tolist()} mm) "
+            + ("is implausible for a head: fix the header's voxel size"
+               if np.any(old_vox > 50) else "is too fine for this machine")
+            + ", or choose a larger `voxel_mm`.")
+
+
 def resample(volume: Volume | LabelMap, voxel_mm, *, order: int | None = None) -> Volume | LabelMap:
     """Resample a Volume or LabelMap to a new voxel size over the same field of view.
 
@@ -508,6 +569,7 @@ def resample(volume: Volume | LabelMap, voxel_mm, *, order: int | None = None) -
             f"{(shape * old_vox).round(2).tolist()} mm: the result would have shape "
             f"{tuple(new_shape.tolist())}; every axis needs >= 2 voxels."
         )
+    _check_memory(new_shape, old_vox, shape, new_vox)
     scale = new_vox / old_vox  # input voxels per output voxel, per axis
     offset = (shape - 1) / 2 - scale * (new_shape - 1) / 2
     t = np.eye(4)

@@ -84,6 +84,10 @@ class ForwardConfig:
     plot_injection: int = 0
 
     def __post_init__(self):
+        if isinstance(self.plot_injection, bool) or not isinstance(self.plot_injection, int) \
+                or self.plot_injection < 0:
+            raise ValueError(f"[forward] `plot_injection` must be an integer >= 0 (a row of the "
+                             f"protocol's injections), got {self.plot_injection!r}.")
         for k, v in self.sigma_s_m.items():
             if k not in TISSUE_NAMES:
                 raise ValueError(f"[forward] `sigma_s_m` has key {k!r}; use {list(TISSUE_NAMES)}.")
@@ -127,7 +131,18 @@ class InverseConfig:
             which removes the bias a coarse mesh puts into brain and CSF.
         approx_error_draws: prior draws for that model (`jaxhead.sample_conductivities`
             around the [forward] conductivities; each costs one solve on each mesh).
-        seed: noise seed.
+        seed: noise seed of the reconstruction's data; the fit's simulated data use seed + 1
+            and the approximation-error draws seed + 2 (independent streams from one seed).
+        centre_height_fraction: with centre_mm = None, the perturbation sits this fraction of
+            the way from the brain's centroid up to its top (0.4: a cortical target).
+        reconstruct_noise_floor: the reconstruction's whitening refers to max(|V0|, floor *
+            RMS(V0)) per channel (`jaxhead.inverse.noise_std`), so that channels with a
+            near-zero standing voltage are not trusted beyond the mesh's accuracy (0.03:
+            tests/test_inverse_recovery.py).
+        noser_exponent: column normalisation of the reconstruction (`TSVD(normalise=...)`;
+            EIDORS prior_noser). 0.5, half NOSER: full NOSER (1) lifts deep cells on heads.
+        fit_rtol, fit_atol: the fit's convergence tolerances (optimistix rtol/atol).
+        fit_max_steps: the fit's step limit.
     """
 
     centre_mm: tuple[float, float, float] | None = None
@@ -143,6 +158,12 @@ class InverseConfig:
     approx_error_mesh: str | None = None
     approx_error_draws: int = 20
     seed: int = 0
+    centre_height_fraction: float = 0.4
+    reconstruct_noise_floor: float = 0.03
+    noser_exponent: float = 0.5
+    fit_rtol: float = 1e-6
+    fit_atol: float = 1e-6
+    fit_max_steps: int = 50
 
     def __post_init__(self):
         for name in ("radius_mm", "cell_mm"):
@@ -152,8 +173,19 @@ class InverseConfig:
             raise ValueError(f"[inverse] `rel_change` must be > -1, got {self.rel_change}.")
         if not self.noise_percent >= 0:
             raise ValueError(f"[inverse] `noise_percent` must be >= 0, got {self.noise_percent}.")
-        if not self.noise_floor >= 0:
-            raise ValueError(f"[inverse] `noise_floor` must be >= 0, got {self.noise_floor}.")
+        for name in ("noise_floor", "reconstruct_noise_floor", "noser_exponent"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"[inverse] `{name}` must be >= 0, got {getattr(self, name)}.")
+        if not 0 <= self.centre_height_fraction <= 1:
+            raise ValueError("[inverse] `centre_height_fraction` must be in [0, 1] (0: the brain's "
+                             f"centroid, 1: its top), got {self.centre_height_fraction}.")
+        for name in ("fit_rtol", "fit_atol"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"[inverse] `{name}` must be > 0, got {getattr(self, name)}.")
+        if isinstance(self.fit_max_steps, bool) or not isinstance(self.fit_max_steps, int) \
+                or self.fit_max_steps < 1:
+            raise ValueError(f"[inverse] `fit_max_steps` must be an integer >= 1, got "
+                             f"{self.fit_max_steps!r}.")
         for name in ("measured_path", "approx_error_mesh"):
             value = getattr(self, name)
             if value is not None and not Path(value).is_file():
@@ -188,6 +220,11 @@ class RunConfig:
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     forward: ForwardConfig = field(default_factory=ForwardConfig)
     inverse: InverseConfig = field(default_factory=InverseConfig)
+
+    def __post_init__(self):
+        if self.stages is not None and len(self.stages) == 0:
+            raise ValueError("`stages` is empty, so the run would do nothing; list the stages to "
+                             "run, or leave `stages` out to run them all.")
 
     @property
     def run_dir(self) -> Path:
@@ -285,6 +322,11 @@ def load_config(path: str | Path) -> RunConfig:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{path}: not valid TOML: {e}") from None
+    if not data:
+        raise ValueError(
+            f"{path}: the config is empty, so the run would be the built-in demo written to "
+            "runs/run; set at least `out_dir` (and `stages`, [input]): start from "
+            "configs/demo.toml.")
     try:
         return from_dict(RunConfig, data)
     except ValueError as e:

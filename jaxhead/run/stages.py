@@ -1,7 +1,8 @@
 """The pipeline's stages: each reads what earlier stages wrote in the run folder and writes its own.
 
-Each stage is ``fn(cfg, subject) -> summary dict``. Only public jaxhead functions are called here;
-no numerics live in this module.
+Each stage is ``fn(cfg, subject) -> summary dict``, with ``@stage(config=..., reads=...)`` beside it
+naming the config sections and earlier stage folders it reads (its resume fingerprint). Stages only
+wire configs to public library calls: every number they use is a config field or a library default.
 """
 
 import dataclasses
@@ -39,13 +40,15 @@ from ..phantom import make_head
 from ..plot import plot_image_cut, plot_mesh_cut, plot_overlay, plot_scalp_potential
 from ..protocol import load_voltages, protocol_from_config, save_voltages
 from ..segmentation import segment
-from ..tissue import TISSUES, Tissue
+from ..tissue import TISSUES, Tissue, sigma_per_tet
 from .config import RunConfig
+from .declare import stage
 from .subject import Subject
 
 logger = logging.getLogger(__name__)
 
 
+@stage(config=("input",))
 def run_input(cfg: RunConfig, subject: Subject) -> dict:
     """Make the phantom (or load the scan), write scan.nii.gz (+ labels) and an overlay PNG."""
 
@@ -73,6 +76,7 @@ def run_input(cfg: RunConfig, subject: Subject) -> dict:
             "has_labels": labels is not None}
 
 
+@stage(config=("segment",), reads=("input",))
 def run_segment(cfg: RunConfig, subject: Subject) -> dict:
     """Atlas registration + EM/MRF segmentation into brain, CSF, skull, scalp (and Dice vs truth)."""
 
@@ -98,13 +102,18 @@ def run_segment(cfg: RunConfig, subject: Subject) -> dict:
     return summary
 
 
+def _layer_sources(cfg: RunConfig) -> tuple[str, ...]:
+    """The folders the layers stage reads: the input's, and the segmentation's if it runs."""
+    return ("input", "segment") if cfg.stages is None or "segment" in cfg.stages else ("input",)
+
+
 def _labels_for_layers(cfg: RunConfig, subject: Subject):
     """The label map the layers stage starts from: the segmentation if it ran, else the input's."""
 
-    for stage in ("segment", "input"):
-        path = subject.file(stage, "labels.nii.gz")
-        if (cfg.stages is None or stage in cfg.stages) and path.exists():
-            return io.load_labels(path), stage
+    for source in _layer_sources(cfg)[::-1]:
+        path = subject.file(source, "labels.nii.gz")
+        if path.exists():
+            return io.load_labels(path), source
     raise ValueError(
         f"[{subject.name}] no label map to build layers from: add the 'segment' stage, or give "
         "[input] labels_path (phantoms always have labels)."
@@ -118,6 +127,7 @@ def _write_text(path, text: str) -> None:
         Path(tmp).write_text(text)
 
 
+@stage(config=("layers",), reads=lambda cfg: _layer_sources(cfg))
 def run_layers(cfg: RunConfig, subject: Subject) -> dict:
     """Hard labels -> nested layers (closing, nesting, minimum thickness), with a per-rule report."""
 
@@ -132,6 +142,7 @@ def run_layers(cfg: RunConfig, subject: Subject) -> dict:
     return {"from": source, **report.to_dict()}
 
 
+@stage(config=("surfaces",), reads=("layers",))
 def run_surfaces(cfg: RunConfig, subject: Subject) -> dict:
     """Layers -> four nested watertight surfaces (marching cubes, repair, Taubin, remeshing)."""
 
@@ -144,13 +155,19 @@ def run_surfaces(cfg: RunConfig, subject: Subject) -> dict:
     return report.to_dict()
 
 
+@stage(config=("mesh", "electrodes"), reads=("surfaces",))  # refined under the electrodes
 def run_mesh(cfg: RunConfig, subject: Subject) -> dict:
     """Surfaces -> labelled four-tissue tet mesh (fTetWild + improvement), with a cut-away PNG."""
 
     surfaces = {t: io.load_surface(subject.file("surfaces", f"{t.name.lower()}.stl"), t)
                 for t in TISSUES}
     mesh_cfg = _mesh_config(cfg, surfaces)
-    mesh, report = tetrahedralize_reported(surfaces, mesh_cfg)
+    try:
+        mesh, report = tetrahedralize_reported(surfaces, mesh_cfg)
+    except RuntimeError as e:  # the mesher's own failure on these surfaces: an input problem
+        raise ValueError(
+            f"the mesher failed on {subject.root / 'surfaces'}/*.stl: {e} Check the surfaces "
+            "stage's report.txt, or change [mesh] edge_mm / [surfaces] settings.") from e
     out = subject.dir("mesh")
     io.save_mesh(mesh, out / "mesh.vtu")
     _write_text(out / "report.txt", str(report))
@@ -167,6 +184,8 @@ def _mesh_config(cfg: RunConfig, surfaces):
     if not cfg.electrodes.refine_mesh or mesh_cfg.refine_points_mm:
         return mesh_cfg  # refinement off, or the user's own refine points
     pos = electrode_positions(surfaces[Tissue.SCALP], cfg.electrodes)
+    # The rule `ElectrodeConfig.refine_mesh` documents (with its measured effect): at least the
+    # electrode radius plus two refined edges.
     radius = max(mesh_cfg.refine_radius_mm, cfg.electrodes.radius_mm + 2 * mesh_cfg.refine_edge_mm)
     logger.info("mesh: refining to %.1f mm within %.1f mm of %d electrode positions",
                 mesh_cfg.refine_edge_mm, radius, len(pos))
@@ -174,6 +193,7 @@ def _mesh_config(cfg: RunConfig, surfaces):
                                refine_radius_mm=radius)
 
 
+@stage(config=("export",), reads=("mesh",))
 def run_export(cfg: RunConfig, subject: Subject) -> dict:
     """Write the mesh as .msh (Gmsh), .vtu (ParaView) and .mat (MATLAB/EIDORS), as configured."""
 
@@ -183,6 +203,7 @@ def run_export(cfg: RunConfig, subject: Subject) -> dict:
     return {"files": written}
 
 
+@stage(config=(), reads=("mesh",))
 def run_quality(cfg: RunConfig, subject: Subject) -> dict:
     """The seed paper's Table-2 row and per-tissue quality statistics, with histograms."""
 
@@ -195,6 +216,7 @@ def run_quality(cfg: RunConfig, subject: Subject) -> dict:
     return {"table2": report.table2_row}
 
 
+@stage(config=("forward", "electrodes", "protocol"), reads=("mesh",))
 def run_forward(cfg: RunConfig, subject: Subject) -> dict:
     """Electrodes on the scalp, a protocol, boundary voltages (CSV) and the scalp potential (PNG)."""
 
@@ -210,7 +232,10 @@ def run_forward(cfg: RunConfig, subject: Subject) -> dict:
         f"{n},{c[0]:.3f},{c[1]:.3f},{c[2]:.3f}\n" for n, c in zip(electrodes.names, cen)))
     protocol.to_csv(out / "protocol.csv")
     inj = np.asarray(protocol.injections)
-    k = min(max(cfg.forward.plot_injection, 0), inj.shape[0] - 1)
+    k = cfg.forward.plot_injection
+    if not 0 <= k < inj.shape[0]:
+        raise ValueError(f"[forward] `plot_injection` = {k}, but the protocol has {inj.shape[0]} "
+                         f"injections; use 0..{inj.shape[0] - 1}.")
     u, _ = potentials(model, sigma, inj[k:k + 1], current_a=protocol.current_a)
     faces, _ = mesh.boundary_faces()
     plot_scalp_potential(mesh.nodes, faces, np.asarray(u[0]), out / "scalp_potential.png",
@@ -231,6 +256,7 @@ def _forward_model(cfg: RunConfig, subject: Subject):
     return mesh, electrodes, protocol, model
 
 
+@stage(config=("inverse", "forward", "electrodes", "protocol"), reads=("mesh",))
 def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
     """Reconstruct a simulated brain perturbation (TSVD/Tikhonov) and fit tissue conductivities.
 
@@ -250,12 +276,12 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
     t0 = time.perf_counter()
     mesh, electrodes, protocol, model = _forward_model(cfg, subject)
     sigma = cfg.forward.sigma()
-    sigma_tet = sigma[mesh.labels - 1]
+    sigma_tet = sigma_per_tet(mesh, sigma)
     if c.centre_mm is None:
-        brain = mesh.labels == 1
+        brain = mesh.labels == int(Tissue.BRAIN)
         cen, vol = mesh.centroids()[brain], mesh.tet_volumes()[brain]
         middle = (cen * vol[:, None]).sum(0) / vol.sum()
-        centre = middle + 0.4 * np.array([0.0, 0.0, cen[:, 2].max() - middle[2]])
+        centre = middle + c.centre_height_fraction * np.array([0.0, 0.0, cen[:, 2].max() - middle[2]])
     else:
         centre = np.asarray(c.centre_mm, dtype=float)
     seconds["model"] = time.perf_counter() - t0
@@ -272,14 +298,14 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
     t0 = time.perf_counter()
     kind = TSVD if c.method == "tsvd" else Tikhonov
     if c.noise_percent > 0:
-        # Whitened by the noise level (floored at 3 % of the RMS standing voltage, so that
-        # near-zero channels are not trusted beyond the model's accuracy) and half-NOSER
-        # normalised (exponent 0.5, EIDORS prior_noser; full NOSER lifts deep cells on heads).
-        std = noise_std(v0, c.noise_percent, floor=0.03)
-        rec = reconstruct(Jg, dv_noisy, kind(noise_weighted=True, normalise=0.5), noise_std=std)
+        # Whitened by the noise level, floored and NOSER-normalised as [inverse] says
+        # (reconstruct_noise_floor, noser_exponent; their sources are in InverseConfig).
+        std = noise_std(v0, c.noise_percent, floor=c.reconstruct_noise_floor)
+        rec = reconstruct(Jg, dv_noisy, kind(noise_weighted=True, normalise=c.noser_exponent),
+                          noise_std=std)
     else:
         std = None
-        rec = reconstruct(Jg, dv_noisy, kind(normalise=0.5))
+        rec = reconstruct(Jg, dv_noisy, kind(normalise=c.noser_exponent))
     x = np.asarray(rec.image)
     m = image_metrics(x, grid.centres, grid.volumes, centre, c.radius_mm,
                       sign=1 if c.rel_change > 0 else -1)
@@ -303,6 +329,16 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
             reference = measured
         fit_std = (noise_std(reference, c.noise_percent, floor=c.noise_floor)
                    if c.noise_percent > 0 else None)
+        if fit_std is not None and np.any(fit_std <= 0):
+            i = int(np.flatnonzero(fit_std <= 0)[0])
+            src = (f"`measured_path` {c.measured_path!r}" if c.measured_path is not None
+                   else "the simulated voltages")
+            raise ValueError(
+                f"[inverse] {src}: the voltage of protocol row {i} (electrodes "
+                f"{(np.asarray(protocol.rows)[i] + 1).tolist()}, 1-based) is {reference[i]} V, "
+                f"so its noise ({c.noise_percent} % of it, noise_floor = {c.noise_floor}) is 0 "
+                f"and the fit would trust it infinitely ({int((fit_std <= 0).sum())} such rows); "
+                "set [inverse] noise_floor > 0 (e.g. 0.1) or remove the channel.")
         ae = None
         if c.approx_error_mesh is not None:
             ae = _approx_error(cfg, electrodes, model, protocol, sigma)
@@ -310,8 +346,15 @@ def run_inverse(cfg: RunConfig, subject: Subject) -> dict:
             seconds["approx_error"] = time.perf_counter() - t0
         res = fit_conductivities(model, protocol, measured, init=np.asarray(c.fit_init_s_m),
                                  noise_std=fit_std, approx_error=ae,
-                                 solver=LineSearchGaussNewton(rtol=1e-6, atol=1e-6),
-                                 max_steps=50, throw=False)
+                                 solver=LineSearchGaussNewton(rtol=c.fit_rtol, atol=c.fit_atol),
+                                 max_steps=c.fit_max_steps, throw=False)
+        if c.measured_path is not None and not np.all(np.isfinite(res.std_error)):
+            raise ValueError(
+                f"[inverse] the fit to `measured_path` {c.measured_path!r} has no finite standard "
+                f"errors (sigma {res.sigma.tolist()}, std errors {res.std_error.tolist()}): the "
+                "data do not determine the conductivities. Check that the rows follow the "
+                "protocol (forward/protocol.csv); a one-column file cannot be checked, the "
+                "five-column format (source, sink, meas+, meas-, volts) can.")
         if ae is not None:
             table = (f"approximation-error model against {c.approx_error_mesh} "
                      f"({c.approx_error_draws} draws; mean error "
