@@ -17,9 +17,11 @@ import numpy as np
 
 from ..tissue import TISSUES
 
-#: gmsh options. The 3D algorithm is HXT (``Mesh.Algorithm3D`` = 10): on the 2 mm phantom it gave
-#: 129k tets in 0.5 s with 74 below the Table-2 limits, gmsh's Delaunay (1) 126k in 3.1 s with
-#: 559 (benchmarks/mesh.py). Sizes come from the fields and the boundary only.
+#: gmsh options. The 3D algorithm is HXT (``Mesh.Algorithm3D`` = 10): on the 2 mm phantom's surfaces,
+#: with one size cap (10 mm) and no fields, it gave 129k tets in 0.5 s with 74 below the Table-2
+#: limits, gmsh's Delaunay (1) 126k in 3.1 s with 559; with the per-shell fields and threshold 0.5
+#: below, 125k tets in 8.6 s with 99 (benchmarks/mesh.py). Sizes come from the fields and the
+#: boundary only.
 _OPTIONS = {
     "Mesh.MeshSizeFromPoints": 0,
     "Mesh.MeshSizeFromCurvature": 0,
