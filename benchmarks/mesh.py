@@ -1,21 +1,33 @@
-"""Time label map -> mesh for a phantom head, and report the mesh against the seed paper.
+"""Time label map -> Table-2-clean mesh on a phantom head: jaxhead's default mesher against the raw
+mesher and fTetWild, on the same surfaces, in one run, with ratios.
 
 Stages timed (wall and CPU seconds): make_head (the phantom, not part of the pipeline),
-make_layers, extract_surfaces, tetrahedralize (fTetWild + improvement, split as in its report),
-quality_report. Printed: seconds per stage, tet
-count, the seed paper's Table-2 row (Vonach et al. 2012: MRI meshes of ~300k elements had 3-11
-outside scaled Jacobian 0.2-1 and 8-26 outside condition number 1-3), per-tissue volume against
-the voxel volume of the layered label map, and the fraction of tets whose centroid's voxel has
-the tet's label. The baseline for time is the seed paper's (30 min per MRI, 60 min per CT, with
-manual steps in MeshLab and CUBIT); no automatic peer runs here.
+make_layers, extract_surfaces, tetrahedralize with MeshConfig() (the default path: mesher "auto",
+i.e. gmsh when installed, then TetGen, then fTetWild; improvement on), quality_report. Then every
+mesher in --compare meshes the same surfaces; for each: the raw mesher's seconds (the report's
+mesher step), the improvement's seconds, tets, the seed paper's Table-2 counts before the
+improvement (scaled Jacobian < 0.2, condition > 3) and after it (Vonach et al. 2012: MRI meshes of
+~300k elements had 3-11 and 8-26 outside), per-tissue volume against the layered label map's
+voxels, and the tet-centroid label agreement. Ratios: fTetWild's tetrahedralize against the
+default's, and the default's tetrahedralize against its raw mesher.
 
-    .venv/bin/python benchmarks/mesh.py --voxel-mm 1.0 --modality mri [--threads 1] [--save out.npz]
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py                  # 2 mm
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py --voxel-mm 1.0 --compare gmsh,tetgen
 
-The machine is shared: pass --threads 1 for comparable numbers on a loaded 2-core machine.
+The machine is shared: the load average is printed at the start and the end.
 
-Measured (2 shared cores, load average 6-7, default sizes): 1 mm MRI phantom 258,873 tets, 0
-elements outside Table 2, volumes within 1.2 % of the voxels', centroid agreement 99.43 % of tets
-(99.83 % of volume); label map -> quality report 672 s wall, 299 s CPU (fTetWild 645 s wall).
+Measured (2 shared cores, load average 1.4-1.6, OPENBLAS_NUM_THREADS=1, gmsh 4.15.2, tetgen 0.8.4,
+pytetwild 0.4.2; `benchmarks/mesh.py --voxel-mm 2`): default path (gmsh) label map -> Table-2-clean
+mesh 15.2 s (tetrahedralize 11.8 s: gmsh 8.6, improvement 2.7), 124,711 tets, 0 outside Table 2,
+volumes within 0.92 % of the voxels', centroid agreement 98.8 % of tets. Same surfaces:
+
+    mesher          total s   raw s  impr s     tets  SJ<0.2  cond>3  after J/SJ/D/C  vol err % B/C/S/Sc
+    gmsh               11.7     9.7     1.5   124711      99       0         0/0/0/0  -0.3/+0.9/-0.2/-0.3
+    tetgen              8.4     2.1     5.7   188952    1270    2172         0/0/0/0  -0.4/+1.2/-0.2/-0.4
+    ftetwild          119.4   113.1     1.2   260792       0       0         0/0/0/0  -0.4/+1.0/-0.3/-0.4
+    ftetwild-fast     117.4   111.2     1.1   258444       0       0         0/0/0/0  -0.4/+0.9/-0.2/-0.4
+
+fTetWild's time is not in its optimisation passes (stop energy 100 and 3 passes save 2 s of 113).
 """
 
 import argparse
@@ -36,12 +48,20 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from jaxhead.geometry import MeshConfig, tetrahedralize_reported  # noqa: E402
-from jaxhead.phantom import make_head  # noqa: E402
-from jaxhead.geometry.quality import quality_report  # noqa: E402
 from jaxhead.geometry.layers import make_layers  # noqa: E402
+from jaxhead.geometry.quality import quality_report  # noqa: E402
 from jaxhead.geometry.surface import SurfaceConfig, extract_surfaces  # noqa: E402
+from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.tissue import TISSUES  # noqa: E402
 from jaxhead.volume import voxel_sizes  # noqa: E402
+
+#: fTetWild with faster settings than MeshConfig's (stop energy 30, 20 passes): fewer passes and a
+#: looser stop energy; the improvement step guards the quality.
+FTETWILD_FAST = {"stop_energy": 100.0, "max_opt_iterations": 3}
+
+
+def _load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg()) + f" ({os.cpu_count()} cores)"
 
 
 def centroid_labels(mesh, labels) -> np.ndarray:
@@ -95,21 +115,45 @@ def agreement_report(mesh, labels, surfaces) -> str:
     return "\n".join(lines)
 
 
+def voxel_volume_errors(mesh, layers) -> dict:
+    """Per-tissue relative error of the mesh volume against the layered label map's voxels."""
+    vox = float(np.prod(voxel_sizes(np.asarray(layers.affine))))
+    lab = np.asarray(layers.labels)
+    vols = mesh.tissue_volumes_mm3()
+    return {t: vols[t] / (float((lab == int(t)).sum()) * vox) - 1.0 for t in TISSUES}
+
+
+def _candidate(name: str, surfaces, cfg_kw: dict, layers) -> dict:
+    """Mesh the surfaces with one mesher (and the improvement); its numbers for the table."""
+    w0, c0 = time.perf_counter(), time.process_time()
+    mesh, rep = tetrahedralize_reported(surfaces, MeshConfig(**cfg_kw))
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    row = quality_report(mesh).table2_row
+    imp = rep.improvement
+    return {"name": name, "mesher": rep.mesher, "wall": wall, "cpu": cpu,
+            "raw": rep.seconds[rep.mesher], "improve": rep.seconds.get("improve", 0.0),
+            "mesher_tets": rep.mesher_tets, "tets": mesh.n_tets,
+            "sj_before": imp.get("scaled_jacobian_below_0.2_before"),
+            "cond_before": imp.get("condition_above_3_before"),
+            "after": (row["jacobian"], row["scaled_jacobian"], row["distortion"], row["condition"]),
+            "vol_err": voxel_volume_errors(mesh, layers), "agree": centroid_agreement(mesh, layers),
+            "report": rep}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--voxel-mm", type=float, default=1.0)
+    ap.add_argument("--voxel-mm", type=float, default=2.0, help="phantom voxel size (2 mm; 1 mm for the fine head)")
     ap.add_argument("--modality", choices=("mri", "ct"), default="mri")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--threads", type=int, default=0, help="fTetWild threads (0: all cores)")
+    ap.add_argument("--threads", type=int, default=0, help="gmsh/fTetWild threads (0: all cores)")
+    ap.add_argument("--compare", type=str, default="gmsh,tetgen,ftetwild,ftetwild-fast",
+                    help="meshers to time on the same surfaces (installed ones only): gmsh, tetgen, "
+                         f"ftetwild (MeshConfig's settings), ftetwild-fast ({FTETWILD_FAST})")
     ap.add_argument("--edge-mm", type=str, default=None,
                     help='JSON per-tissue edges, e.g. \'{"brain": 4, "csf": 2, "skull": 2.5, "scalp": 3}\'')
-    ap.add_argument("--surface-edge-mm", type=str, default=None,
-                    help="JSON per-tissue surface edges for SurfaceConfig.edge_mm (coarser surfaces: fewer tets)")
-    ap.add_argument("--improve", choices=("relocate", "none"), default="relocate")
-    ap.add_argument("--save", type=str, default=None, help="save nodes/tets/labels to this .npz")
-    ap.add_argument("--save-surfaces", type=str, default=None,
-                    help="pickle the layered label map and the surfaces to this path")
+    ap.add_argument("--save", type=str, default=None, help="save the default mesh's nodes/tets/labels to this .npz")
     a = ap.parse_args(argv)
+    print(f"load average at the start: {_load()}", flush=True)
 
     t, cpu = {}, {}
 
@@ -119,51 +163,73 @@ def main(argv=None):
         t[name], cpu[name] = time.perf_counter() - w0, time.process_time() - c0
         return out
 
-    _, labels = clock("make_head (phantom)", lambda: make_head(a.modality, voxel_mm=a.voxel_mm, seed=a.seed))
-    layers = clock("make_layers", make_layers, labels)
-    scfg = SurfaceConfig(edge_mm=json.loads(a.surface_edge_mm)) if a.surface_edge_mm else SurfaceConfig()
-    surfaces = clock("extract_surfaces", extract_surfaces, layers, scfg)
-    if a.save_surfaces:
-        import pickle
-
-        with open(a.save_surfaces, "wb") as fh:
-            pickle.dump({"layers": layers, "surfaces": surfaces}, fh)
-    print("surface faces: " + ", ".join(f"{t.name} {len(s.faces)}" for t, s in surfaces.items()), flush=True)
-    kw = {"threads": a.threads, "improve": a.improve}
+    kw = {"threads": a.threads}
     if a.edge_mm:
         kw["edge_mm"] = json.loads(a.edge_mm)
+    _, labels = clock("make_head (phantom)", lambda: make_head(a.modality, voxel_mm=a.voxel_mm, seed=a.seed))
+    layers = clock("make_layers", make_layers, labels)
+    surfaces = clock("extract_surfaces", extract_surfaces, layers, SurfaceConfig())
+    print("surface faces: " + ", ".join(f"{t.name} {len(s.faces)}" for t, s in surfaces.items()), flush=True)
     mesh, rep = clock("tetrahedralize", tetrahedralize_reported, surfaces, MeshConfig(**kw))
     if a.save:
         np.savez(a.save, nodes=mesh.nodes, tets=mesh.tets, labels=mesh.labels)
     q = clock("quality_report", quality_report, mesh)
 
-    print(f"phantom {a.modality} {a.voxel_mm:g} mm, grid {np.asarray(labels.labels).shape}, "
-          f"seed {a.seed}, fTetWild threads {a.threads or 'all'}")
-    print(f"load average at the end: {' '.join(f'{x:.2f}' for x in os.getloadavg())} "
-          f"({os.cpu_count()} cores)")
-    print("seconds per stage (wall, CPU of this process incl. fTetWild threads):")
+    print(f"phantom {a.modality} {a.voxel_mm:g} mm, grid {np.asarray(labels.labels).shape}, seed {a.seed}; "
+          f"default mesher: {rep.mesher}")
+    print("default path, seconds per stage (wall, CPU of this process incl. mesher threads):")
     for k, v in t.items():
         print(f"  {k:<22s} {v:8.1f} {cpu[k]:8.1f}")
     for k, v in rep.seconds.items():
         print(f"    tetrahedralize/{k:<10s} {v:6.1f}")
     stages = ("make_layers", "extract_surfaces", "tetrahedralize", "quality_report")
     pipeline = sum(t[k] for k in stages)
-    print(f"  label map -> quality   {pipeline:8.1f} {sum(cpu[k] for k in stages):8.1f}  (seed paper: "
-          f"~1800 s per MRI, 3600 per CT with manual steps; ratio {1800 / pipeline:.0f}x for MRI)")
+    print(f"  label map -> Table-2-clean mesh {pipeline:6.1f} s wall (target <= 30 s at 2 mm, <= 60 s at 1 mm; "
+          f"seed paper ~1800 s per MRI with manual steps)")
     print(rep)
     row = q.table2_row
     print(f"Table 2 row: {row['elements']} elements; outside: Jacobian {row['jacobian']}, "
           f"scaled Jacobian {row['scaled_jacobian']}, distortion {row['distortion']}, "
           f"condition {row['condition']} (seed MRI rows: 3-11 and 8-26 of ~300k)")
-    vox = float(np.prod(voxel_sizes(np.asarray(layers.affine))))
-    lab = np.asarray(layers.labels)
-    vols = mesh.tissue_volumes_mm3()
-    print("per-tissue volume vs voxel volume of the layered label map:")
-    for tis in TISSUES:
-        vv = float((lab == int(tis)).sum()) * vox
-        print(f"  {tis.name:<6s} mesh {vols[tis] / 1e3:9.2f} cm^3  voxels {vv / 1e3:9.2f} cm^3  "
-              f"error {100 * (vols[tis] / vv - 1):+6.2f} %")
-    print(agreement_report(mesh, layers, surfaces))
+    err = voxel_volume_errors(mesh, layers)
+    print("per-tissue volume vs voxel volume of the layered label map: " + ", ".join(
+        f"{t.name} {100 * e:+.2f} %" for t, e in err.items()))
+    print(agreement_report(mesh, layers, surfaces), flush=True)
+
+    from jaxhead.geometry.tetrahedralize import available_meshers
+
+    have = available_meshers()
+    rows = []
+    for name in [s.strip() for s in a.compare.split(",") if s.strip()]:
+        mesher = "ftetwild" if name.startswith("ftetwild") else name
+        if mesher not in have:
+            print(f"[{name}: not installed, skipped]")
+            continue
+        ckw = dict(kw, mesher=mesher, **(FTETWILD_FAST if name == "ftetwild-fast" else {}))
+        print(f"meshing the same surfaces with {name} ...", flush=True)
+        rows.append(_candidate(name, surfaces, ckw, layers))
+    print(f"\nmeshers on the same surfaces ({a.voxel_mm:g} mm phantom), load average now {_load()}:")
+    print(f"  {'mesher':<14s} {'total s':>8s} {'raw s':>7s} {'impr s':>7s} {'tets':>8s} "
+          f"{'SJ<0.2':>7s} {'cond>3':>7s} {'after J/SJ/D/C':>15s} {'vol err % B/C/S/Sc':>26s} {'agree':>6s}")
+    for r in rows:
+        ve = "/".join(f"{100 * r['vol_err'][t]:+.1f}" for t in TISSUES)
+        print(f"  {r['name']:<14s} {r['wall']:8.1f} {r['raw']:7.1f} {r['improve']:7.1f} {r['tets']:8d} "
+              f"{r['sj_before']!s:>7s} {r['cond_before']!s:>7s} {'/'.join(map(str, r['after'])):>15s} "
+              f"{ve:>26s} {100 * r['agree']:5.1f}%")
+    ftw = next((r for r in rows if r["name"] == "ftetwild"), None)
+    print("ratios:")
+    print(f"  default ({rep.mesher}) tetrahedralize {t['tetrahedralize']:.1f} s / its raw mesher "
+          f"{rep.seconds[rep.mesher]:.1f} s = {t['tetrahedralize'] / rep.seconds[rep.mesher]:.1f}x")
+    if ftw is not None:
+        print(f"  fTetWild tetrahedralize {ftw['wall']:.1f} s / default {t['tetrahedralize']:.1f} s = "
+              f"{ftw['wall'] / t['tetrahedralize']:.1f}x faster by default")
+        print(f"  fTetWild label map -> mesh {pipeline - t['tetrahedralize'] + ftw['wall']:.1f} s / default "
+              f"{pipeline:.1f} s = {(pipeline - t['tetrahedralize'] + ftw['wall']) / pipeline:.1f}x")
+    for r in rows:
+        if r["name"] != "ftetwild" and ftw is not None:
+            print(f"  {r['name']}: {ftw['wall'] / r['wall']:.1f}x faster than fTetWild (raw mesher "
+                  f"{ftw['raw'] / max(r['raw'], 1e-9):.0f}x)")
+    print(f"load average at the end: {_load()}")
 
 
 if __name__ == "__main__":

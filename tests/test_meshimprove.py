@@ -119,7 +119,9 @@ def _spheres(radii=(8.0, 10.0, 12.0, 14.0), subdiv=3):
 @pytest.fixture(scope="module")
 def raw_mesh():
     """fTetWild's labelled sphere mesh without improvement (some tets below the target)."""
-    cfg = MeshConfig(edge_mm=4.0, threads=1, stop_energy=30.0, max_opt_iterations=5, improve="none")
+    pytest.importorskip("pytetwild")
+    cfg = MeshConfig(mesher="ftetwild", edge_mm=4.0, threads=1, stop_energy=30.0, max_opt_iterations=5,
+                     improve="none")
     m = tetrahedralize(_spheres(), cfg)
     return np.asarray(m.nodes), np.asarray(m.tets), np.asarray(m.labels)
 

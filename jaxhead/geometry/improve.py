@@ -380,8 +380,9 @@ def improve_mesh(nodes: np.ndarray, tets: np.ndarray, labels: np.ndarray, projec
         flip_cycles: at most this many flip passes (each followed by relocation rounds).
 
     Returns:
-        (nodes (n, 3), tets (m', 4), labels (m',), stats dict: poor tets before/after, nodes
-        moved, flips, seconds). The tets change only by flips within one tissue, so every
+        (nodes (n, 3), tets (m', 4), labels (m',), stats dict: poor tets before/after, the
+        input's Table-2 counts (scaled Jacobian < 0.2, condition > 3), nodes moved, flips,
+        seconds). The tets change only by flips within one tissue, so every
         tissue's region and every interface are those of the input.
     """
     t0 = time.perf_counter()
@@ -390,8 +391,11 @@ def improve_mesh(nodes: np.ndarray, tets: np.ndarray, labels: np.ndarray, projec
     labels = np.asarray(labels)
     n = len(nodes)
     rng = np.random.default_rng(seed)
-    q = tet_quality(nodes, tets)
+    sj, cond = _sj_cond(nodes[tets])
+    q = np.where(sj > 0, np.minimum(sj, 0.6 / np.where(cond > 0, cond, np.inf)), sj)
     below_before = int((q < LIMIT).sum())
+    # The input's Table-2 counts (Vonach et al. 2012: scaled Jacobian 0.2-1, condition 1-3).
+    table2_before = (int((sj < 0.2).sum()), int((cond > 3).sum()))
     min_before = float(q.min())
     moved = rounds = n23 = n32 = n_split = 0
     # Relocation raises each star's worst tet but may push others below 0.2, and splits can leave
@@ -440,6 +444,8 @@ def improve_mesh(nodes: np.ndarray, tets: np.ndarray, labels: np.ndarray, projec
     cls = classify_nodes(tets, labels, len(nodes))
     stats = {
         "below_0.2_before": below_before,
+        "scaled_jacobian_below_0.2_before": table2_before[0],
+        "condition_above_3_before": table2_before[1],
         "below_0.2_after": int((q < LIMIT).sum()),
         "min_quality_before": round(min_before, 4),
         "min_quality_after": round(float(q.min()), 4),

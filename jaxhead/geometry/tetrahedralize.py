@@ -1,14 +1,23 @@
-"""Tetrahedral meshes: the TetMesh type, its topology helpers, and tetrahedralize.  [host]
+"""Tetrahedralisation of the four nested surfaces: gmsh, TetGen or fTetWild, then improvement.  [host]
 
 :func:`tetrahedralize` turns the four nested surfaces (``jaxhead.geometry.surface``) into a labelled
-four-tissue tet mesh: fTetWild (Hu, Schneider, Wang, Zorin, Panozzo 2020, "Fast Tetrahedral
-Meshing in the Wild", ACM TOG 39(4):117, through pytetwild) meshes all four surfaces at once
-with per-tissue sizes from a background sizing field (capped near each surface by that surface's
-own edge length, graded away from it); tets are labelled by the surfaces that contain them; then
-the worst tets are improved (``jaxhead.geometry.improve``: node relocation, flips and edge splits
-inside one tissue) with every interface node kept on its interface.
+four-tissue tet mesh with one of three meshers (``MeshConfig.mesher``):
+
+- gmsh (HXT constrained Delaunay, ``jaxhead.geometry.mesher_gmsh``; GPL, optional extra) and
+  TetGen (constrained Delaunay, ``jaxhead.geometry.mesher_tetgen``; AGPL, optional extra) keep
+  the input triangles as mesh faces, so each tet's tissue is its region's; surfaces are first
+  refined around the refine points (``jaxhead.geometry.refine``);
+- fTetWild (Hu, Schneider, Wang, Zorin, Panozzo 2020, "Fast Tetrahedral Meshing in the Wild",
+  ACM TOG 39(4):117, through pytetwild; MPL-2.0, a dependency) meshes all four surfaces at once
+  with per-tissue sizes from a background sizing field (capped near each surface by that
+  surface's own edge length, graded away from it); tets are labelled by the surfaces that
+  contain them.
+
+Then the worst tets are improved (``jaxhead.geometry.improve``: node relocation, flips and edge
+splits inside one tissue) with every interface node kept on its interface.
 """
 
+import importlib.util
 import logging
 import math
 import time
@@ -23,6 +32,7 @@ from scipy.spatial import cKDTree
 
 from ..tissue import TISSUES, Tissue
 from .improve import improve_mesh
+from .refine import refine_surface
 from .surface import Surface
 from .tetmesh import TetMesh, face_adjacency, orient_tets, signed_volumes
 
@@ -38,6 +48,42 @@ log = logging.getLogger(__name__)
 #: tets there, 0 outside Table 2, tissue volumes within 1.2 % of the voxels'
 #: (``benchmarks/mesh.py``).
 DEFAULT_EDGE_MM = {"brain": 10.0, "csf": 4.0, "skull": 4.5, "scalp": 6.0}
+
+#: The meshers, in the order "auto" tries them (benchmarks/mesh.py, 2 mm phantom, 2 shared cores,
+#: load ~1.5; tetrahedralize in total, Table-2 counts before the improvement step, 0 after each):
+#: gmsh 11.7 s, 125k tets, 99 below scaled Jacobian 0.2; TetGen 8.4 s, 189k tets, 1,270 (and
+#: 2,172 above condition 3); fTetWild 119 s, 261k tets, 0. gmsh comes first although TetGen was
+#: faster there: its raw mesh is nearly clean, so less rests on the improvement step, and its
+#: licence (GPL) is less demanding than TetGen's (AGPL). Both are optional extras (copyleft);
+#: fTetWild (MPL-2.0) is always installed.
+MESHERS = ("gmsh", "tetgen", "ftetwild")
+_MODULES = {"gmsh": "gmsh", "tetgen": "tetgen", "ftetwild": "pytetwild"}
+_EXTRAS = {"gmsh": "pip install 'jaxhead[gmsh]' (GPL-2.0-or-later)",
+           "tetgen": "pip install 'jaxhead[tetgen]' (AGPL-3.0)",
+           "ftetwild": "pip install pytetwild (MPL-2.0)"}
+
+
+def available_meshers() -> tuple[str, ...]:
+    """The meshers whose Python package is importable here, in the order "auto" tries them."""
+    return tuple(m for m in MESHERS if importlib.util.find_spec(_MODULES[m]) is not None)
+
+
+def choose_mesher(mesher: str) -> str:
+    """The mesher that ``MeshConfig.mesher`` names: itself, or for "auto" the first available.
+
+    Raises:
+        ValueError: the named mesher's package is not installed (the message says how to install it).
+    """
+    have = available_meshers()
+    if mesher == "auto":
+        if not have:
+            raise ValueError("`mesher` = 'auto' but none of gmsh, tetgen, pytetwild is installed; "
+                             f"install one: {'; '.join(_EXTRAS.values())}.")
+        return have[0]
+    if mesher not in have:
+        raise ValueError(f"`mesher` = {mesher!r} but its package ({_MODULES[mesher]}) is not installed: "
+                         f"{_EXTRAS[mesher]}, or use mesher='auto' (available here: {list(have)}).")
+    return mesher
 
 
 def _per_tissue_mm(value, name: str) -> dict[Tissue, float]:
@@ -70,12 +116,22 @@ class MeshConfig:
     """Settings of :func:`tetrahedralize`.
 
     Arguments:
+        mesher: "gmsh", "tetgen", "ftetwild", or "auto" (default): the first of those three
+            that is installed. gmsh (GPL) and TetGen (AGPL) are optional extras
+            (``jaxhead[gmsh]``, ``jaxhead[tetgen]``); fTetWild (MPL-2.0) is a dependency. The
+            report names the mesher used. gmsh and TetGen keep the surfaces' triangles
+            (refined around the refine points) and need no envelope; the fTetWild settings
+            below (sizing grid, envelope, stop energy, passes) apply to fTetWild only.
         edge_mm: target tet edge length (mm) per tissue: one number, or a mapping with keys
-            brain, csf, skull, scalp (names or Tissue). Realised through fTetWild's sizing field
-            (a background grid whose value near each tissue is that tissue's edge; the smallest
-            value wins within one grid cell of an interface, so thin shells keep their size).
+            brain, csf, skull, scalp (names or Tissue). gmsh: a size field per shell, graded
+            from the surfaces' own edges; TetGen: a maximum tet volume per shell (that of the
+            regular tet); fTetWild: a sizing field (a background grid whose value near each
+            tissue is that tissue's edge; the smallest value wins within one grid cell of an
+            interface, so thin shells keep their size).
         refine_points_mm: (k, 3) points (world mm, e.g. electrode centres) near which the mesh
-            is refined; empty for none.
+            is refined; empty for none. gmsh and TetGen: the surfaces' edges there are bisected
+            down to 1.5 x the target (``jaxhead.geometry.refine``); gmsh also grades the
+            volume by the same law.
         refine_radius_mm: within this distance of a refine point the target edge is
             `refine_edge_mm`; beyond it the target grows by `refine_grading` mm per mm.
         refine_edge_mm: target edge length (mm) near the refine points.
@@ -100,9 +156,10 @@ class MeshConfig:
         improve_iterations: at most this many rounds of relocation per cycle (each round moves
             the nodes of the tets still below the target; it stops earlier when none is left or
             no node moved). Rounds are cheap (only poor tets), so the cap is generous.
-        threads: fTetWild threads (0: all cores).
+        threads: gmsh and fTetWild threads (0: all cores; TetGen is serial).
     """
 
+    mesher: Literal["auto", "gmsh", "tetgen", "ftetwild"] = "auto"
     edge_mm: float | Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_EDGE_MM))
     refine_points_mm: tuple[tuple[float, float, float], ...] = ()
     refine_radius_mm: float = 10.0
@@ -144,6 +201,8 @@ class MeshConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ValueError(f"`{name}` must be an integer >= 0, got {v!r}.")
+        if self.mesher not in ("auto", *MESHERS):
+            raise ValueError(f"`mesher` = {self.mesher!r}; choose 'auto', 'gmsh', 'tetgen' or 'ftetwild'.")
         if self.improve not in ("relocate", "none"):
             raise ValueError(f"`improve` = {self.improve!r}; choose 'relocate' or 'none'.")
 
@@ -157,14 +216,18 @@ class MeshReport:
     """What :func:`tetrahedralize` did and what came out.
 
     Arguments:
+        mesher: the mesher used ("gmsh", "tetgen" or "ftetwild"; see ``MeshConfig.mesher``).
         n_nodes, n_tets: the final mesh.
         tets_per_tissue, volume_mm3, surface_volume_mm3: per tissue (BRAIN..SCALP): tet counts,
             meshed volumes, and the volumes the input surfaces enclose between them.
-        envelope_mm: fTetWild's envelope used; min_gap_mm: smallest distance between
-            consecutive input surfaces (at their vertices).
-        sizing_grid_mm: background sizing grid spacing (mm).
-        ftetwild_tets: tets fTetWild returned (inside the scalp surface).
-        dropped_outside: tets whose centroid lies outside the scalp surface (dropped).
+        envelope_mm: fTetWild's envelope used (0 for gmsh and TetGen, which keep the input
+            triangles); min_gap_mm: smallest distance between consecutive input surfaces (at
+            their vertices).
+        sizing_grid_mm: fTetWild's background sizing grid spacing (mm); None for the others.
+        surface_edges_split: surface edges bisected around the refine points before gmsh or
+            TetGen (the surfaces stay the same polyhedra); 0 for fTetWild.
+        mesher_tets: tets the mesher returned.
+        dropped_outside: tets whose centroid lies outside the scalp surface (dropped; fTetWild).
         relabelled_near_interface: tets whose centroid lay within the envelope of a surface and
             took the side of their neighbours instead (see :func:`label_tets`).
         nesting_conflicts: tets inside a surface but outside the next one out (labelled by
@@ -176,6 +239,7 @@ class MeshReport:
         seconds: wall time per step.
     """
 
+    mesher: str
     n_nodes: int
     n_tets: int
     tets_per_tissue: dict
@@ -183,8 +247,9 @@ class MeshReport:
     surface_volume_mm3: dict
     envelope_mm: float
     min_gap_mm: float
-    sizing_grid_mm: float
-    ftetwild_tets: int
+    sizing_grid_mm: float | None
+    surface_edges_split: int
+    mesher_tets: int
     dropped_outside: int
     relabelled_near_interface: int
     nesting_conflicts: int
@@ -207,11 +272,12 @@ class MeshReport:
         return d
 
     def __str__(self) -> str:
-        lines = [f"tetrahedralize: {self.n_tets} tets, {self.n_nodes} nodes in "
+        lines = [f"tetrahedralize ({self.mesher}): {self.n_tets} tets, {self.n_nodes} nodes in "
                  f"{sum(self.seconds.values()):.1f} s ("
                  + ", ".join(f"{k} {v:.1f}" for k, v in self.seconds.items()) + ")",
                  f"  envelope {self.envelope_mm:.3f} mm, min surface gap {self.min_gap_mm:.2f} mm, "
-                 f"fTetWild {self.ftetwild_tets} tets, dropped outside scalp "
+                 f"surface edges split {self.surface_edges_split}, "
+                 f"{self.mesher} {self.mesher_tets} tets, dropped outside scalp "
                  f"{self.dropped_outside}, relabelled near interfaces "
                  f"{self.relabelled_near_interface}, nesting conflicts {self.nesting_conflicts}"]
         err = self.volume_errors()
@@ -525,21 +591,51 @@ def _diagnose_failure(surfs, envelope_mm, cfg) -> str:
             "close: raise SurfaceConfig.min_gap_mm or lower MeshConfig.envelope_mm).")
 
 
+def region_seeds(surfs) -> np.ndarray:
+    """A point strictly inside each shell (BRAIN..SCALP): just inside a large face of its surface.
+
+    Arguments:
+        surfs: [(vertices, faces)] BRAIN..SCALP, closed, outward, strictly nested.
+
+    Returns:
+        (4, 3) mm; point k lies inside surface k and outside surface k - 1 (winding numbers).
+    """
+    out = []
+    for k, (V, F) in enumerate(surfs):
+        p = V[F]
+        n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        area2 = np.linalg.norm(n, axis=1)
+        order = np.argsort(-area2)[:64]
+        # A tenth of the face's size inward: inside this surface, and (a large face of a surface
+        # at least min_gap away from the next) not past the surface inside it; checked below.
+        depth = 0.1 * np.sqrt(area2[order])
+        cand = p[order].mean(axis=1) - n[order] / area2[order, None] * depth[:, None]
+        ok = _winding(V, F, cand) > 0.5
+        if k:
+            ok &= _winding(*surfs[k - 1], cand) < 0.5
+        if not ok.any():
+            raise RuntimeError(f"no point found inside the {TISSUES[k].name} shell next to its 64 "
+                               "largest faces; is the shell thinner than a tenth of its faces?")
+        out.append(cand[np.argmax(ok)])
+    return np.array(out)
+
+
 def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -> tuple[TetMesh, MeshReport]:
     """Nested four-tissue tetrahedral mesh from the four nested surfaces, with a report.
 
-    fTetWild (Hu et al. 2020, ACM TOG 39:117, through pytetwild) meshes the four surfaces at once:
-    their faces are inserted into the tet mesh within an envelope, so every interface is a set
-    of mesh faces and no tet straddles one. Each tet is labelled by the nested surfaces that
-    contain its centroid (:func:`label_tets`); tets outside the scalp surface are dropped.
-    Then the worst tets are improved (``cfg.improve``) without moving any interface off its
-    surface or changing a label.
+    The mesher (``cfg.mesher``): gmsh or TetGen (constrained Delaunay) keep the input triangles
+    as mesh faces (after refining them around ``cfg.refine_points_mm``) and label each tet by
+    its region; fTetWild (Hu et al. 2020, ACM TOG 39:117, through pytetwild) inserts the four
+    surfaces within an envelope and each tet is labelled by the nested surfaces that contain its
+    centroid (:func:`label_tets`; tets outside the scalp surface are dropped). Either way every
+    interface is a set of mesh faces and no tet straddles one. Then the worst tets are improved
+    (``cfg.improve``) without moving any interface off its surface or changing a label.
 
     Arguments:
         surfaces: {Tissue: Surface} for BRAIN, CSF, SKULL and SCALP; the surface of tissue T
             bounds the solid of T and every tissue inside it (see ``jaxhead.geometry.surface``). Closed,
             outward, strictly nested.
-        cfg: sizes, refinement points, fTetWild and improvement settings.
+        cfg: mesher, sizes, refinement points, fTetWild and improvement settings.
 
     Returns:
         (mesh, report): the TetMesh (nodes mm, positively oriented tets, labels 1..4) and a
@@ -547,50 +643,98 @@ def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -
     """
     if not isinstance(cfg, MeshConfig):
         raise ValueError(f"`cfg` must be a MeshConfig, got {type(cfg).__name__}.")
+    mesher = choose_mesher(cfg.mesher)
     seconds = {}
     t0 = time.perf_counter()
     surfs = _check_surfaces(surfaces)
     dists = [_Dist(V, F) for V, F in surfs]
     gaps = _nesting_gaps(surfs, dists)
-    V = np.concatenate([s[0] for s in surfs])
-    offs = np.cumsum([0] + [len(s[0]) for s in surfs])[:-1]
-    F = np.concatenate([s[1] + o for s, o in zip(surfs, offs)])
-    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
     min_gap = min(gaps)
-    envelope = cfg.envelope_mm if cfg.envelope_mm is not None else min(1e-3 * diag, min_gap / 3.0)
-    if envelope >= min_gap / 2:
-        raise ValueError(
-            f"`envelope_mm` = {envelope:.3g} mm is at least half the smallest gap between the "
-            f"surfaces ({min_gap:.3g} mm): fTetWild could merge two surfaces. Lower envelope_mm "
-            "(or leave it None) or extract the surfaces with a larger min_gap_mm.")
     edges = cfg.edges()
-    spacing = cfg.sizing_grid_mm or max(
-        min(min(edges.values()), cfg.refine_edge_mm if cfg.refine_points_mm else math.inf), diag / 80)
-    bg = sizing_field(surfs, cfg, spacing)
-    seconds["checks"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
     what = "the BRAIN, CSF, SKULL and SCALP surfaces together"
-    try:
-        nodes, tets = _run_ftetwild(V, F, edge_mm=max(edges.values()), envelope_mm=envelope,
-                                    cfg=cfg, bg=bg, what=what)
-    except RuntimeError as e:
-        raise RuntimeError(f"{e}. {_diagnose_failure(surfs, envelope, cfg)}") from e
-    n_ftw = len(tets)
-    tets, n_flipped = orient_tets(nodes, tets)
-    if n_flipped:
-        log.info("tetrahedralize: %d of %d fTetWild tets were negatively oriented; reordered.",
-                 n_flipped, len(tets))
-    seconds["ftetwild"] = time.perf_counter() - t0
+    n_split, spacing, n_out, n_relab, conflicts = 0, None, 0, 0, 0
+    if mesher == "ftetwild":
+        V = np.concatenate([s[0] for s in surfs])
+        offs = np.cumsum([0] + [len(s[0]) for s in surfs])[:-1]
+        F = np.concatenate([s[1] + o for s, o in zip(surfs, offs)])
+        diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+        envelope = cfg.envelope_mm if cfg.envelope_mm is not None else min(1e-3 * diag, min_gap / 3.0)
+        if envelope >= min_gap / 2:
+            raise ValueError(
+                f"`envelope_mm` = {envelope:.3g} mm is at least half the smallest gap between the "
+                f"surfaces ({min_gap:.3g} mm): fTetWild could merge two surfaces. Lower envelope_mm "
+                "(or leave it None) or extract the surfaces with a larger min_gap_mm.")
+        spacing = cfg.sizing_grid_mm or max(
+            min(min(edges.values()), cfg.refine_edge_mm if cfg.refine_points_mm else math.inf), diag / 80)
+        bg = sizing_field(surfs, cfg, spacing)
+        seconds["checks"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    labels, n_relab, conflicts = label_tets(nodes, tets, surfs, dists, envelope)
-    keep = labels > 0
-    n_out = int((~keep).sum())
-    tets, labels = tets[keep], labels[keep]
+        t0 = time.perf_counter()
+        try:
+            nodes, tets = _run_ftetwild(V, F, edge_mm=max(edges.values()), envelope_mm=envelope,
+                                        cfg=cfg, bg=bg, what=what)
+        except RuntimeError as e:
+            raise RuntimeError(f"{e}. {_diagnose_failure(surfs, envelope, cfg)}") from e
+        n_mesher = len(tets)
+        tets, n_flipped = orient_tets(nodes, tets)
+        if n_flipped:
+            log.info("tetrahedralize: %d of %d fTetWild tets were negatively oriented; reordered.",
+                     n_flipped, len(tets))
+        seconds["ftetwild"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        labels, n_relab, conflicts = label_tets(nodes, tets, surfs, dists, envelope)
+        keep = labels > 0
+        n_out = int((~keep).sum())
+        tets, labels = tets[keep], labels[keep]
+        seconds["label"] = time.perf_counter() - t0
+    else:
+        envelope = 0.0
+        points = np.asarray(cfg.refine_points_mm, dtype=np.float64).reshape(-1, 3)
+        if len(points):
+            # The surfaces are kept as mesh faces: refine them where the mesh must be fine.
+            tree = cKDTree(points)
+
+            def size(x):
+                d, _ = tree.query(x)
+                return cfg.refine_edge_mm + cfg.refine_grading * np.maximum(d - cfg.refine_radius_mm, 0.0)
+
+            refined = [refine_surface(V, F, size) for V, F in surfs]
+            n_split = sum(r[2] for r in refined)
+            if n_split:
+                log.info("tetrahedralize: %d surface edges bisected around %d refine points.",
+                         n_split, len(points))
+            surfs = [(r[0], r[1]) for r in refined]
+            dists = [_Dist(V, F) for V, F in surfs]
+        seconds["checks"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        h = [edges[t] for t in TISSUES]
+        if mesher == "gmsh":
+            from .mesher_gmsh import mesh_gmsh
+
+            nodes, tets, labels = mesh_gmsh(
+                surfs, h, refine_points_mm=points, refine_edge_mm=cfg.refine_edge_mm,
+                refine_radius_mm=cfg.refine_radius_mm, refine_grading=cfg.refine_grading,
+                threads=cfg.threads)
+        else:
+            from .mesher_tetgen import mesh_tetgen
+
+            nodes, tets, labels = mesh_tetgen(surfs, h, region_seeds(surfs))
+        n_mesher = len(tets)
+        tets, n_flipped = orient_tets(nodes, tets)
+        if n_flipped:
+            log.info("tetrahedralize: %d of %d %s tets were negatively oriented; reordered.",
+                     n_flipped, len(tets), mesher)
+        bad = ~np.isin(labels, [int(t) for t in TISSUES])
+        if bad.any():
+            raise RuntimeError(f"{mesher} left {int(bad.sum())} tets in no tissue region of {what}; "
+                               "the surfaces are probably not strictly nested (check_surface).")
+        seconds[mesher] = time.perf_counter() - t0
+
     zero = signed_volumes(nodes, tets) <= 0
     if zero.any():
-        raise RuntimeError(f"fTetWild returned {int(zero.sum())} degenerate (zero-volume) tets for {what}; "
+        raise RuntimeError(f"{mesher} returned {int(zero.sum())} degenerate (zero-volume) tets for {what}; "
                            "try a smaller edge_mm or envelope_mm.")
     used = np.unique(tets)
     remap = np.full(len(nodes), -1, dtype=np.int64)
@@ -599,10 +743,9 @@ def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -
     for t in TISSUES:
         if not np.any(labels == int(t)):
             raise RuntimeError(
-                f"fTetWild's mesh has no {t.name} tet: the {t.name} shell (between the "
+                f"{mesher}'s mesh has no {t.name} tet: the {t.name} shell (between the "
                 f"{t.name} surface and the one inside it) was lost. Its surfaces are probably "
                 "closer than the envelope; lower envelope_mm or raise the surfaces' gap.")
-    seconds["label"] = time.perf_counter() - t0
 
     improvement = {}
     if cfg.improve != "none":
@@ -618,12 +761,13 @@ def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -
     enclosed = [_enclosed_volume(*s) for s in surfs]
     surf_vol = {t: enclosed[k] - (enclosed[k - 1] if k else 0.0) for k, t in enumerate(TISSUES)}
     report = MeshReport(
-        n_nodes=mesh.n_nodes, n_tets=mesh.n_tets,
+        mesher=mesher, n_nodes=mesh.n_nodes, n_tets=mesh.n_tets,
         tets_per_tissue={t: int((labels == int(t)).sum()) for t in TISSUES},
         volume_mm3=vols, surface_volume_mm3=surf_vol, envelope_mm=float(envelope),
-        min_gap_mm=float(min_gap), sizing_grid_mm=spacing, ftetwild_tets=n_ftw,
-        dropped_outside=n_out, relabelled_near_interface=n_relab, nesting_conflicts=conflicts,
-        interface_max_dev_mm=dev, improvement=improvement, seconds=seconds)
+        min_gap_mm=float(min_gap), sizing_grid_mm=spacing, surface_edges_split=int(n_split),
+        mesher_tets=n_mesher, dropped_outside=n_out, relabelled_near_interface=n_relab,
+        nesting_conflicts=conflicts, interface_max_dev_mm=dev, improvement=improvement,
+        seconds=seconds)
     log.info("%s", report)
     return mesh, report
 
@@ -635,7 +779,7 @@ def tetrahedralize(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -> TetMesh
 
     Arguments:
         surfaces: {Tissue: Surface} for BRAIN, CSF, SKULL and SCALP (closed, outward, nested).
-        cfg: sizes, refinement points, fTetWild and improvement settings.
+        cfg: mesher, sizes, refinement points, fTetWild and improvement settings.
 
     Returns:
         TetMesh with nodes (n_nodes, 3) mm, positively oriented tets (n_tets, 4) and labels
