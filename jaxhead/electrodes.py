@@ -292,7 +292,9 @@ def place_electrodes(
         positions: one of
             - (n_elec, 3) world mm (e.g. digitised), projected onto the scalp;
             - a layout name "10-20" (21 electrodes) or "10-10" (61), or a list of 10-10 names
-              (see `layout_positions`);
+              (see `layout_positions`; `EXTENDED` adds Nz, Iz, NFpz, TP9, O9/I1, ...);
+            - a list mixing names and (3,) world-mm coordinates (e.g. a montage whose
+              electrodes are named except a few digitised ones);
             - an int: that many electrodes spread over the upper head (`spread_positions`).
         radius_mm: electrode radius in mm, one value or (n_elec,).
         contact_impedance: contact impedance in Ohm m^2, one value or (n_elec,). Default
@@ -325,6 +327,21 @@ def place_electrodes(
         if landmarks is not None:
             _parse_landmarks(landmarks)
         n_pos = len(layout)
+    elif isinstance(positions, (list, tuple)) and any(isinstance(p, str) for p in positions):
+        kind = "mixed"  # names and coordinates: [ "Fp1", (x, y, z), "NFpz", ... ]
+        is_name = [isinstance(p, str) for p in positions]
+        _layout_names([p for p in positions if isinstance(p, str)])
+        for i, p in enumerate(positions):
+            if not is_name[i]:
+                q = np.asarray(p, dtype=np.float64) if not isinstance(p, dict) else None
+                if q is None or q.shape != (3,) or not np.all(np.isfinite(q)):
+                    raise ValueError(f"`positions[{i}]` = {p!r}: each entry is a 10-10 name or "
+                                     "3 finite world-mm coordinates.")
+        if landmarks is not None:
+            _parse_landmarks(landmarks)
+        n_pos = len(positions)
+        if names is not None and len(names) != n_pos:
+            raise ValueError(f"`names` has {len(names)} entries for {n_pos} positions.")
     elif isinstance(positions, (int, np.integer)) and not isinstance(positions, bool):
         kind = "count"
         _check_count(positions, 72.0)
@@ -351,6 +368,16 @@ def place_electrodes(
         names, pos = _layout(scalp, layout, landmarks)
     elif kind == "count":
         pos = _spread(scalp, n_pos, landmarks, 72.0)
+    elif kind == "mixed":
+        named = [i for i, p in enumerate(positions) if isinstance(p, str)]
+        _, at = _layout(scalp, [positions[i] for i in named], landmarks)
+        pos = np.zeros((n_pos, 3))
+        pos[named] = at
+        for i, p in enumerate(positions):
+            if not isinstance(p, str):
+                pos[i] = np.asarray(p, dtype=np.float64)
+        if names is None:
+            names = [p if isinstance(p, str) else f"E{i + 1}" for i, p in enumerate(positions)]
     n = n_pos
     names = tuple(names) if names is not None else tuple(f"E{i + 1}" for i in range(n))
 
@@ -520,8 +547,9 @@ def _at(pts, s, fractions, s0=0.0, s1=None):
     return np.stack([np.interp(q, s, pts[:, k]) for k in range(3)], axis=1)
 
 
-def _ten_ten(scalp: _Scalp, frame: _HeadFrame) -> dict[str, np.ndarray]:
-    """All 61 positions of the 10-10 system at or above the 10 % circumference ring."""
+def _ten_ten(scalp: _Scalp, frame: _HeadFrame, extended: bool = False) -> dict[str, np.ndarray]:
+    """All 61 positions of the 10-10 system at or above the 10 % circumference ring, and with
+    `extended` the lower (0 %) ring and the 10-5 midline points (`EXTENDED`)."""
     c = frame.centre
     fr = np.arange(1, 10) / 10.0
     cz = scalp.ray_hits(c, frame.axes[2][None])[0]
@@ -560,6 +588,16 @@ def _ten_ten(scalp: _Scalp, frame: _HeadFrame) -> dict[str, np.ndarray]:
         for f, ln, rn in items:
             out[f"{row}{ln}"] = _at(pts, s, [f], 0.0, sm)[0]
             out[f"{row}{rn}"] = _at(pts, s, [1.0 - f], sm, s[-1])[0]
+    if extended:
+        # 10-5 midline (Oostenveld & Praamstra 2001): halfway points of the Nz-Cz-Iz arc.
+        out.update(zip(("Nz", "Iz"), _at(mid, smid, [0.0, 1.0])))
+        out.update(zip(_MIDLINE_10_5, _at(mid, smid, np.arange(0.05, 1.0, 0.1))))
+        # The 0 % ring Nz - T9 - Iz (T9/T10 at the pre-auricular points, the coronal arc's
+        # ends), cut at 10 % of each half as the 10 % ring is.
+        for num, via in (("9", frame.lpa), ("10", frame.rpa)):
+            pts, s = _arc(scalp, c, frame.nz, frame.iz, via)
+            for nm, q in zip(_LOWER_RING, _at(pts, s, fr[1:])):
+                out[f"{nm}{num}"] = q
     return out
 
 
@@ -583,8 +621,20 @@ TEN_TEN = ("Fp1", "Fpz", "Fp2",
            "PO7", "PO3", "POz", "PO4", "PO8",
            "O1", "Oz", "O2")
 
+_MIDLINE_10_5 = ("NFpz", "AFpz", "AFFz", "FFCz", "FCCz", "CCPz", "CPPz", "PPOz", "POOz", "OIz")
+_LOWER_RING = ("AF", "F", "FT", "T", "TP", "P", "PO", "O")
+
+#: Positions beyond `TEN_TEN` (Oostenveld & Praamstra 2001, the 10-10 lower ring and the 10-5
+#: midline): Nz, Iz; the 0 % ring through Nz, the pre-auricular points (T9, T10) and Iz, cut
+#: at 10 % of each half (AF9 F9 FT9 T9 TP9 P9 PO9 O9 on the left, ...10 on the right); the
+#: midline halfway points NFpz (5 %, between Nz and Fpz; UCL's reference) ... OIz (95 %).
+#: I1/I2 are read as O9/O10, the names UCL's recordings use for them. These sit at ear level
+#: and below: the mesh must reach there (a head cut above the ears cannot carry them).
+EXTENDED = (("Nz", "Iz") + _MIDLINE_10_5
+            + tuple(f"{r}{n}" for n in ("9", "10") for r in _LOWER_RING))
+
 LAYOUTS = {"10-20": TEN_TWENTY, "10-10": TEN_TEN}
-_OLD_NAMES = {"T3": "T7", "T4": "T8", "T5": "P7", "T6": "P8"}
+_OLD_NAMES = {"T3": "T7", "T4": "T8", "T5": "P7", "T6": "P8", "I1": "O9", "I2": "O10"}
 
 
 def layout_positions(mesh: TetMesh | Surface, layout="10-20", *, landmarks=None):
@@ -599,7 +649,8 @@ def layout_positions(mesh: TetMesh | Surface, layout="10-20", *, landmarks=None)
         mesh: the head TetMesh, or the scalp Surface (to place refinement points before
             meshing, e.g. `MeshConfig(refine_points_mm=...)`).
         layout: "10-20" (21 positions), "10-10" (61), or a sequence of names from the 10-10
-            system (old names T3/T4/T5/T6 are accepted and mapped to T7/T8/P7/P8).
+            system and `EXTENDED` (old names T3/T4/T5/T6 are accepted and mapped to
+            T7/T8/P7/P8; I1/I2 to O9/O10).
         landmarks: dict of world-mm coordinates "nasion", "inion", "lpa", "rpa" (projected
             onto the scalp); by default estimated with `estimate_landmarks` (RAS assumed).
 
@@ -619,18 +670,28 @@ def _layout_names(layout) -> tuple[str, ...]:
         names = tuple(str(n) for n in layout)
         if not names:
             raise ValueError("`layout` is an empty list of names.")
-    lookup = {n.lower() for n in TEN_TEN}
-    bad = [n for n in names if _OLD_NAMES.get(n, n).lower() not in lookup]
+    lookup = {n.lower() for n in TEN_TEN + EXTENDED}
+    bad = [n for n in names if _canon(n).lower() not in lookup]
     if bad:
-        raise ValueError(f"unknown electrode names {bad}; use 10-10 names such as {TEN_TEN[:6]}.")
+        raise ValueError(f"unknown electrode names {bad}; use 10-10 names such as {TEN_TEN[:6]} "
+                         f"or the extended ones {EXTENDED[:4]}... (see jaxhead.electrodes.EXTENDED).")
     return names
 
 
+def _canon(name: str) -> str:
+    """A name's canonical 10-10 spelling key (old names and aliases mapped, any case)."""
+    for old, new in _OLD_NAMES.items():
+        if name.lower() == old.lower():
+            return new
+    return name
+
+
 def _layout(scalp: _Scalp, names, landmarks):
-    canon = [_OLD_NAMES.get(n, n) for n in names]
-    lookup = {n.lower(): n for n in TEN_TEN}
+    canon = [_canon(n) for n in names]
+    lookup = {n.lower(): n for n in TEN_TEN + EXTENDED}
+    extended = any(lookup[n.lower()] in EXTENDED for n in canon)
     lm = _parse_landmarks(landmarks) if landmarks is not None else _estimate_landmarks(scalp)
-    pos = _ten_ten(scalp, _HeadFrame(scalp, lm))
+    pos = _ten_ten(scalp, _HeadFrame(scalp, lm), extended)
     return tuple(names), np.stack([pos[lookup[n.lower()]] for n in canon])
 
 

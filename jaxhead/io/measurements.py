@@ -126,7 +126,7 @@ class Measurements(eqx.Module):
         if hit.size == 0:
             known = "none (the file gives no frequencies; pass frequency_hz=None)" \
                 if np.all(np.isnan(f)) else ", ".join(f"{x:g}" for x in f)
-            raise ValueError(f"{self.source}: frequency {frequency_hz} Hz is not in the file; "
+            raise ValueError(f"{self.source}: frequency {float(frequency_hz)} Hz is not in the file; "
                              f"its frequencies (Hz): {known}.")
         return int(hit[0])
 
@@ -220,6 +220,21 @@ def _split(line: str) -> list[str]:
     return [c.strip() for c in (line.split(sep) if sep else line.split())]
 
 
+def _is_data(cells, meta) -> bool:
+    """Whether a line parses as a measurement row (else the first such line is the header)."""
+    names = set()
+    if "electrodes" in meta:
+        names = {n.lower() for n in _split(meta["electrodes"][1].replace(",", " "))}
+
+    def num(c):
+        try:
+            float(c)
+            return True
+        except ValueError:
+            return False
+    return all(num(c) or c.lower() in names for c in cells[:4]) and all(map(num, cells[4:]))
+
+
 def _read_csv(path: Path, current_a):
     text = path.read_text(encoding="utf-8")
     meta, positions, header, data = {}, {}, None, []
@@ -235,12 +250,9 @@ def _read_csv(path: Path, current_a):
                 meta[m.group(1).lower()] = (lineno, m.group(3).strip())
             continue
         cells = _split(s)
-        if header is None and not data:
-            try:
-                float(cells[-1])
-            except ValueError:
-                header = (lineno, cells)
-                continue
+        if header is None and not data and not _is_data(cells, meta):
+            header = (lineno, cells)
+            continue
         data.append((lineno, cells))
     where = str(path)
     if not data:
@@ -475,14 +487,17 @@ def _voltage_array(vpath: Path, variable, n_rows, n_freq) -> np.ndarray:
         if variable not in arrays:
             raise ValueError(f"{vpath}: no variable {variable!r}; it has {sorted(arrays)}.")
         return _numeric(arrays[variable], f"{vpath}: {variable}")
-    fits = {}
+    numeric = {}
     for k, v in arrays.items():
         try:
             a = np.asarray(v, dtype=np.float64)
         except (TypeError, ValueError):
             continue
-        if a.size == n_rows * n_freq and a.ndim in (1, 2) and (a.ndim == 2 or n_freq == 1):
-            fits[k] = a
+        if a.ndim in (1, 2) and a.size > 1:
+            numeric[k] = a
+    # the one numeric array (its shape is checked by _orient), else the one of the right size
+    fits = numeric if len(numeric) == 1 else {
+        k: a for k, a in numeric.items() if a.size == n_rows * n_freq}
     if len(fits) != 1:
         what = "none" if not fits else f"several: {sorted(fits)}"
         raise ValueError(f"{vpath}: expected one numeric array of {n_rows} x {n_freq} voltages "
@@ -556,7 +571,7 @@ def save_measurements(path, m: Measurements, *, units: str = "V", one_based: boo
     if m.electrode_names:
         lines.append("# electrodes = " + " ".join(m.electrode_names))
         if m.positions_mm is not None:
-            lines += [f"# position {n} = {p[0]!r} {p[1]!r} {p[2]!r}"
+            lines += [f"# position {n} = {float(p[0])!r} {float(p[1])!r} {float(p[2])!r}"
                       for n, p in zip(m.electrode_names, m.positions_mm)]
     f = m.frequencies_hz
     if np.all(np.isnan(f)) and f.size == 1:
@@ -564,7 +579,7 @@ def save_measurements(path, m: Measurements, *, units: str = "V", one_based: boo
     elif np.any(np.isnan(f)):
         raise ValueError("`m.frequencies_hz` mixes known and unknown (NaN) frequencies.")
     else:
-        cols = [f"{x!r}Hz" for x in f]
+        cols = [f"{float(x)!r}Hz" for x in f]
     lines.append(",".join(["source", "sink", "meas_plus", "meas_minus", *cols]))
     v = m.voltages.T * scale
     for r, row in zip(m.rows + base, v):
