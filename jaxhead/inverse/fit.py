@@ -22,6 +22,7 @@ same model reuse one compilation (optimistix caches on the function's identity).
 realisations are fitted in one vmapped solve by `fit_conductivities_batch`.
 """
 
+import dataclasses
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from typing import Literal
@@ -563,7 +564,7 @@ def fit_conductivities(model, protocol, measured, *, init, fit: Sequence[str] = 
             if np.array_equal(new_keep, keep) and prob.loss == "linear":
                 break
             keep = new_keep
-            prob = eqx.tree_at(lambda p: p.loss, _with_keep(prob, keep, bool(offsets)), "linear")
+            prob = dataclasses.replace(_with_keep(prob, keep, bool(offsets)), loss="linear")
             sol = optx.least_squares(_residuals, solver, sol.value, prob, max_steps=max_steps,
                                      throw=throw)
             n_steps += int(sol.stats.get("num_steps", 0))
@@ -619,3 +620,112 @@ def fit_conductivities_batch(model, protocol, measured, *, init,
                            result=jax.tree.map(lambda x, i=i: x[i], results),
                            ill_conditioned=ill_conditioned))
     return out
+
+
+class Spectrum(eqx.Module):
+    """Per-frequency fits of one recording (`fit_spectrum`).
+
+    Attributes:
+        frequencies_hz: (n_freq,) Hz.
+        results: one `FitResult` per frequency.
+    """
+
+    frequencies_hz: np.ndarray
+    results: tuple[FitResult, ...]
+
+    @property
+    def fitted(self) -> tuple[str, ...]:
+        return self.results[0].fitted
+
+    @property
+    def estimates(self) -> np.ndarray:
+        """(n_freq, n_fit) estimates (S/m; Ohm m^2 for contact impedances; gain: factor)."""
+        return np.stack([r.estimates for r in self.results])
+
+    @property
+    def std_error(self) -> np.ndarray:
+        """(n_freq, n_fit) standard errors, same units."""
+        return np.stack([r.std_error for r in self.results])
+
+    def table(self, columns: Sequence[str] | None = None) -> str:
+        """Estimate +- standard error of each fitted parameter (default: tissues and gain) per
+        frequency, as text (one line per frequency)."""
+        cols = [c for c in (columns or self.fitted) if columns or not c.startswith("z:")]
+        idx = [self.fitted.index(c) for c in cols]
+        head = f"{'f (Hz)':>10}" + "".join(f"{c:>22}" for c in cols) + f"{'rejected':>10}"
+        lines = [head]
+        for f, r in zip(self.frequencies_hz, self.results):
+            lines.append(f"{f:>10.4g}" + "".join(
+                f"{r.estimates[i]:>12.5g} +- {r.std_error[i]:<7.2g}" for i in idx)
+                + f"{r.rejected.size:>10d}")
+        return "\n".join(lines)
+
+    def to_csv(self, path) -> None:
+        """frequency_hz, then estimate and std error of every fitted parameter."""
+        head = ["frequency_hz"] + [f"{c}{s}" for c in self.fitted for s in ("", "_se")]
+        rows = [[f] + [v for pair in zip(r.estimates, r.std_error) for v in pair]
+                for f, r in zip(self.frequencies_hz, self.results)]
+        np.savetxt(path, np.asarray(rows), delimiter=",", header=",".join(head), comments="")
+
+    def plot(self, path=None, tissues: Sequence[str] = TISSUE_NAMES):
+        """Conductivity spectra with +-1 SE bars (log frequency axis); saved when `path`."""
+        import matplotlib.pyplot as plt  # optional, drawing only
+
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for t in tissues:
+            if t in self.fitted:
+                i = self.fitted.index(t)
+                ax.errorbar(self.frequencies_hz, self.estimates[:, i], self.std_error[:, i],
+                            marker="o", capsize=3, label=t)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("frequency (Hz)")
+        ax.set_ylabel("conductivity (S/m)")
+        ax.legend()
+        fig.tight_layout()
+        if path is not None:
+            fig.savefig(path, dpi=120)
+            plt.close(fig)
+        return fig
+
+
+def fit_spectrum(model, measurements: Measurements, *, init, frequencies_hz=None,
+                 noise_percent: float | None = None, **fit_kwargs) -> Spectrum:
+    """Fit every frequency of a recording (or the chosen ones), each started at the previous
+    frequency's estimate: conductivity spectra with standard errors.
+
+    Arguments:
+        model: a `ForwardModel` whose electrodes are the recording's, in its order.
+        measurements: a `jaxhead.io.Measurements` (`load_measurements`).
+        init: (4,) S/m starting point of the first frequency.
+        frequencies_hz: frequencies to fit (each must be in the file); default all.
+        noise_percent: per-channel noise std as this % of |measured| at each frequency
+            (else `fit_kwargs["noise_std"]`, or the fit's default).
+        fit_kwargs: passed to `fit_conductivities` (fit, gain, offsets, reject_sigma, ...).
+
+    Returns:
+        A `Spectrum` (table, CSV, plot).
+    """
+    if not isinstance(measurements, Measurements):
+        raise ValueError(f"`measurements` must be a jaxhead.io.Measurements (load_measurements), "
+                         f"got {type(measurements).__name__}.")
+    if measurements.n_elec != model.n_elec:
+        raise ValueError(f"{measurements.source}: the recording has {measurements.n_elec} "
+                         f"electrodes, the model {model.n_elec}; place the recording's electrodes.")
+    freqs = (measurements.frequencies_hz if frequencies_hz is None
+             else np.atleast_1d(np.asarray(frequencies_hz, np.float64)))
+    cols = [measurements.frequency_index(f) for f in freqs] if frequencies_hz is not None \
+        else list(range(measurements.voltages.shape[0]))
+    protocol = Protocol(measurements.rows, measurements.current_a)
+    start = np.asarray(init, np.float64)
+    out = []
+    for k in cols:
+        v = measurements.voltages[k]
+        kw = dict(fit_kwargs)
+        if noise_percent is not None:
+            kw["noise_std"] = noise_percent / 100.0 * np.abs(v)
+        res = fit_conductivities(model, protocol, v, init=start, **kw)
+        out.append(res)
+        start = res.sigma
+    return Spectrum(frequencies_hz=np.asarray(measurements.frequencies_hz)[cols],
+                    results=tuple(out))
