@@ -284,3 +284,26 @@ def test_measured_fit_errors(ref_model):
     bad[3] = np.nan
     with pytest.raises(ValueError, match=r"NaN or Inf \(first at index \[3\]\)"):
         fit_conductivities(ref_model, prot, bad, init=TRUE)
+
+
+def test_ucl_file_round_trip_is_fitted(ref_model, tmp_path):
+    """A UCL-layout recording (JSON + MATLAB v7.3 in mV, 1-based, metres) written here, read
+    back and fitted at two frequencies with free offsets (an unknown reference potential)."""
+    import json
+
+    from jaxhead.io import load_measurements
+    from test_measurements import write_mat73
+
+    prot = reference_protocol(N_REF, N_REF - 1)
+    truths = [TRUE, TRUE * np.array([1.1, 1.0, 1.3, 1.05])]
+    rng = np.random.default_rng(8)
+    volts = np.stack([np.asarray(_simulate(ref_model, t, prot)) for t in truths])
+    volts = volts + rng.normal(0, 1e-3, (2, prot.n_inj))[:, prot.drive_index]  # reference offsets
+    settings = {"Freq": [10.0, 500.0], "Protocol": (prot.rows + 1).tolist(),
+                "ElectrodePosition": (np.zeros((N_REF, 3)) + 0.09).tolist(),
+                "CurrentA": prot.current_a}
+    (tmp_path / "r.json").write_text(json.dumps(settings))
+    write_mat73(tmp_path / "r.mat", {"V": volts.T * 1e3})
+    meas = load_measurements(tmp_path / "r.json")
+    spec = fit_spectrum(ref_model, meas, init=default_sigma(), offsets="per_injection")
+    np.testing.assert_allclose(spec.estimates, np.stack(truths), rtol=1e-5)
