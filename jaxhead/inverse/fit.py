@@ -349,7 +349,7 @@ def _prepare(model, protocol, measured, *, init, fit, contact_impedance, noise_s
             raise ValueError(f"`priors[{key!r}]` = {val!r}: value and sd must be > 0.")
         j = labels.index(key)
         p_idx.append(j)
-        p_mu.append(np.log(mu) if key != "gain" else np.log(mu))
+        p_mu.append(np.log(mu))
         p_sd.append(sd)
     if contact_prior is not None:
         if n_z == 0:
