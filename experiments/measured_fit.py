@@ -12,8 +12,8 @@ fitted with gain, per-electrode contact impedances (factor-2 prior), free offset
 loss and 5-sigma channel rejection. The gain makes the conductivities identifiable only up to
 a common scale; CSF's prior (1.79 S/m +- 2 %, Baumann et al. 1997) anchors it.
 
-Run: python experiments/measured_fit.py [--mesh /tmp/meas/head4.msh]
-Writes experiments/results/measured_fit.txt and .json.
+Run: python experiments/measured_fit.py [--mesh /tmp/meas/head4.msh] [--seed 0 --name measured_fit]
+Writes experiments/results/<name>.txt and .json (seed 0: measured_fit; seed 1: measured_fit_seed1).
 """
 
 import argparse
@@ -75,6 +75,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--mesh", default="/tmp/meas/head4.msh")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--name", default="measured_fit", help="results file stem")
     args = ap.parse_args()
     t0 = time.time()
     mesh = head_mesh(pathlib.Path(args.mesh))
@@ -96,7 +97,7 @@ def main():
     bad = np.sort(rng.choice(prot.n_rows, int(round(0.05 * prot.n_rows)), replace=False))
     noisy[bad] *= 1.2
 
-    rec = write_ucl(pathlib.Path("/tmp/meas/ucl_case"), prot, noisy, el.centres, [10.0])
+    rec = write_ucl(pathlib.Path(f"/tmp/meas/ucl_case{args.seed}"), prot, noisy, el.centres, [10.0])
     meas = load_measurements(rec)
     assert np.array_equal(meas.rows, prot.rows) and meas.electrode_names == tuple(NAMES)
     measured = meas.at(10.0)
@@ -143,7 +144,7 @@ def main():
         "error_over_se": {k: round(float(x), 3) for k, x in z_stat.items()},
     }
     OUT.mkdir(exist_ok=True)
-    (OUT / "measured_fit.json").write_text(json.dumps(report, indent=1))
+    (OUT / f"{args.name}.json").write_text(json.dumps(report, indent=1))
     lines = [res.table(truth=sigma_true), "",
              f"mesh {mesh.n_tets} tets; {prot.n_rows} rows; fit {t_fit:.0f} s",
              f"gain true {gain_true}, fitted {res.gain:.4f}",
@@ -163,7 +164,7 @@ def main():
              f"|error| / SE: max {report['max_abs_error_over_se']:.2f}, within 3 SE "
              f"{100 * report['fraction_within_3se']:.0f} %, within 2 SE "
              f"{100 * report['fraction_within_2se']:.0f} % of {len(z_stat)} parameters"]
-    (OUT / "measured_fit.txt").write_text("\n".join(lines) + "\n")
+    (OUT / f"{args.name}.txt").write_text("\n".join(lines) + "\n")
     print("\n".join(lines[1:]))
 
 
