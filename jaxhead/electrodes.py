@@ -11,9 +11,11 @@ across a fold of the surface, with total area closest to pi r^2. For the radii u
 from __future__ import annotations
 
 import heapq
+import json
 import math
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -292,7 +294,9 @@ def place_electrodes(
         positions: one of
             - (n_elec, 3) world mm (e.g. digitised), projected onto the scalp;
             - a layout name "10-20" (21 electrodes) or "10-10" (61), or a list of 10-10 names
-              (see `layout_positions`);
+              (see `layout_positions`; `EXTENDED` adds Nz, Iz, NFpz, TP9, O9/I1, ...);
+            - a list mixing names and (3,) world-mm coordinates (e.g. a montage whose
+              electrodes are named except a few digitised ones);
             - an int: that many electrodes spread over the upper head (`spread_positions`).
         radius_mm: electrode radius in mm, one value or (n_elec,).
         contact_impedance: contact impedance in Ohm m^2, one value or (n_elec,). Default
@@ -325,6 +329,21 @@ def place_electrodes(
         if landmarks is not None:
             _parse_landmarks(landmarks)
         n_pos = len(layout)
+    elif isinstance(positions, (list, tuple)) and any(isinstance(p, str) for p in positions):
+        kind = "mixed"  # names and coordinates: [ "Fp1", (x, y, z), "NFpz", ... ]
+        is_name = [isinstance(p, str) for p in positions]
+        _layout_names([p for p in positions if isinstance(p, str)])
+        for i, p in enumerate(positions):
+            if not is_name[i]:
+                q = np.asarray(p, dtype=np.float64) if not isinstance(p, dict) else None
+                if q is None or q.shape != (3,) or not np.all(np.isfinite(q)):
+                    raise ValueError(f"`positions[{i}]` = {p!r}: each entry is a 10-10 name or "
+                                     "3 finite world-mm coordinates.")
+        if landmarks is not None:
+            _parse_landmarks(landmarks)
+        n_pos = len(positions)
+        if names is not None and len(names) != n_pos:
+            raise ValueError(f"`names` has {len(names)} entries for {n_pos} positions.")
     elif isinstance(positions, (int, np.integer)) and not isinstance(positions, bool):
         kind = "count"
         _check_count(positions, 72.0)
@@ -351,6 +370,16 @@ def place_electrodes(
         names, pos = _layout(scalp, layout, landmarks)
     elif kind == "count":
         pos = _spread(scalp, n_pos, landmarks, 72.0)
+    elif kind == "mixed":
+        named = [i for i, p in enumerate(positions) if isinstance(p, str)]
+        _, at = _layout(scalp, [positions[i] for i in named], landmarks)
+        pos = np.zeros((n_pos, 3))
+        pos[named] = at
+        for i, p in enumerate(positions):
+            if not isinstance(p, str):
+                pos[i] = np.asarray(p, dtype=np.float64)
+        if names is None:
+            names = [p if isinstance(p, str) else f"E{i + 1}" for i, p in enumerate(positions)]
     n = n_pos
     names = tuple(names) if names is not None else tuple(f"E{i + 1}" for i in range(n))
 
@@ -520,8 +549,9 @@ def _at(pts, s, fractions, s0=0.0, s1=None):
     return np.stack([np.interp(q, s, pts[:, k]) for k in range(3)], axis=1)
 
 
-def _ten_ten(scalp: _Scalp, frame: _HeadFrame) -> dict[str, np.ndarray]:
-    """All 61 positions of the 10-10 system at or above the 10 % circumference ring."""
+def _ten_ten(scalp: _Scalp, frame: _HeadFrame, extended: bool = False) -> dict[str, np.ndarray]:
+    """All 61 positions of the 10-10 system at or above the 10 % circumference ring, and with
+    `extended` the lower (0 %) ring and the 10-5 midline points (`EXTENDED`)."""
     c = frame.centre
     fr = np.arange(1, 10) / 10.0
     cz = scalp.ray_hits(c, frame.axes[2][None])[0]
@@ -560,6 +590,16 @@ def _ten_ten(scalp: _Scalp, frame: _HeadFrame) -> dict[str, np.ndarray]:
         for f, ln, rn in items:
             out[f"{row}{ln}"] = _at(pts, s, [f], 0.0, sm)[0]
             out[f"{row}{rn}"] = _at(pts, s, [1.0 - f], sm, s[-1])[0]
+    if extended:
+        # 10-5 midline (Oostenveld & Praamstra 2001): halfway points of the Nz-Cz-Iz arc.
+        out.update(zip(("Nz", "Iz"), _at(mid, smid, [0.0, 1.0])))
+        out.update(zip(_MIDLINE_10_5, _at(mid, smid, np.arange(0.05, 1.0, 0.1))))
+        # The 0 % ring Nz - T9 - Iz (T9/T10 at the pre-auricular points, the coronal arc's
+        # ends), cut at 10 % of each half as the 10 % ring is.
+        for num, via in (("9", frame.lpa), ("10", frame.rpa)):
+            pts, s = _arc(scalp, c, frame.nz, frame.iz, via)
+            for nm, q in zip(_LOWER_RING, _at(pts, s, fr[1:])):
+                out[f"{nm}{num}"] = q
     return out
 
 
@@ -583,8 +623,20 @@ TEN_TEN = ("Fp1", "Fpz", "Fp2",
            "PO7", "PO3", "POz", "PO4", "PO8",
            "O1", "Oz", "O2")
 
+_MIDLINE_10_5 = ("NFpz", "AFpz", "AFFz", "FFCz", "FCCz", "CCPz", "CPPz", "PPOz", "POOz", "OIz")
+_LOWER_RING = ("AF", "F", "FT", "T", "TP", "P", "PO", "O")
+
+#: Positions beyond `TEN_TEN` (Oostenveld & Praamstra 2001, the 10-10 lower ring and the 10-5
+#: midline): Nz, Iz; the 0 % ring through Nz, the pre-auricular points (T9, T10) and Iz, cut
+#: at 10 % of each half (AF9 F9 FT9 T9 TP9 P9 PO9 O9 on the left, ...10 on the right); the
+#: midline halfway points NFpz (5 %, between Nz and Fpz; UCL's reference) ... OIz (95 %).
+#: I1/I2 are read as O9/O10, the names UCL's recordings use for them. These sit at ear level
+#: and below: the mesh must reach there (a head cut above the ears cannot carry them).
+EXTENDED = (("Nz", "Iz") + _MIDLINE_10_5
+            + tuple(f"{r}{n}" for n in ("9", "10") for r in _LOWER_RING))
+
 LAYOUTS = {"10-20": TEN_TWENTY, "10-10": TEN_TEN}
-_OLD_NAMES = {"T3": "T7", "T4": "T8", "T5": "P7", "T6": "P8"}
+_OLD_NAMES = {"T3": "T7", "T4": "T8", "T5": "P7", "T6": "P8", "I1": "O9", "I2": "O10"}
 
 
 def layout_positions(mesh: TetMesh | Surface, layout="10-20", *, landmarks=None):
@@ -599,7 +651,8 @@ def layout_positions(mesh: TetMesh | Surface, layout="10-20", *, landmarks=None)
         mesh: the head TetMesh, or the scalp Surface (to place refinement points before
             meshing, e.g. `MeshConfig(refine_points_mm=...)`).
         layout: "10-20" (21 positions), "10-10" (61), or a sequence of names from the 10-10
-            system (old names T3/T4/T5/T6 are accepted and mapped to T7/T8/P7/P8).
+            system and `EXTENDED` (old names T3/T4/T5/T6 are accepted and mapped to
+            T7/T8/P7/P8; I1/I2 to O9/O10).
         landmarks: dict of world-mm coordinates "nasion", "inion", "lpa", "rpa" (projected
             onto the scalp); by default estimated with `estimate_landmarks` (RAS assumed).
 
@@ -619,18 +672,28 @@ def _layout_names(layout) -> tuple[str, ...]:
         names = tuple(str(n) for n in layout)
         if not names:
             raise ValueError("`layout` is an empty list of names.")
-    lookup = {n.lower() for n in TEN_TEN}
-    bad = [n for n in names if _OLD_NAMES.get(n, n).lower() not in lookup]
+    lookup = {n.lower() for n in TEN_TEN + EXTENDED}
+    bad = [n for n in names if _canon(n).lower() not in lookup]
     if bad:
-        raise ValueError(f"unknown electrode names {bad}; use 10-10 names such as {TEN_TEN[:6]}.")
+        raise ValueError(f"unknown electrode names {bad}; use 10-10 names such as {TEN_TEN[:6]} "
+                         f"or the extended ones {EXTENDED[:4]}... (see jaxhead.electrodes.EXTENDED).")
     return names
 
 
+def _canon(name: str) -> str:
+    """A name's canonical 10-10 spelling key (old names and aliases mapped, any case)."""
+    for old, new in _OLD_NAMES.items():
+        if name.lower() == old.lower():
+            return new
+    return name
+
+
 def _layout(scalp: _Scalp, names, landmarks):
-    canon = [_OLD_NAMES.get(n, n) for n in names]
-    lookup = {n.lower(): n for n in TEN_TEN}
+    canon = [_canon(n) for n in names]
+    lookup = {n.lower(): n for n in TEN_TEN + EXTENDED}
+    extended = any(lookup[n.lower()] in EXTENDED for n in canon)
     lm = _parse_landmarks(landmarks) if landmarks is not None else _estimate_landmarks(scalp)
-    pos = _ten_ten(scalp, _HeadFrame(scalp, lm))
+    pos = _ten_ten(scalp, _HeadFrame(scalp, lm), extended)
     return tuple(names), np.stack([pos[lookup[n.lower()]] for n in canon])
 
 
@@ -789,3 +852,187 @@ def electrodes_from_config(mesh: TetMesh, cfg: ElectrodeConfig = ElectrodeConfig
         mesh, layout, radius_mm=cfg.radius_mm, contact_impedance=cfg.contact_impedance_ohm_m2,
         landmarks=None if cfg.landmarks_mm is None else dict(cfg.landmarks_mm),
         max_distance_mm=cfg.max_distance_mm)
+
+
+# --------------------------------------------------------------------------------------------
+# Recording coordinates registered to the scalp; landmarks from files
+
+
+class Registration(eqx.Module):
+    """Electrode coordinates of a recording mapped onto a head's scalp (`register_positions`).
+
+    Attributes:
+        positions_mm: (n_elec, 3) registered positions projected onto the scalp (world mm).
+        matrix: (4, 4) similarity transform (scale * rotation, translation) from the
+            recording's coordinates to world mm.
+        scale: the transform's scale (e.g. ~1000 for a recording in metres).
+        scalp_distance_mm: (n_elec,) distance of each transformed position from the scalp.
+        name_residual_mm: (n_elec,) distance to the named position on this head (NaN for
+            unnamed electrodes or ICP-only registrations).
+        method: "names", "icp" or "names+icp".
+    """
+
+    positions_mm: np.ndarray
+    matrix: np.ndarray
+    scale: float
+    scalp_distance_mm: np.ndarray
+    name_residual_mm: np.ndarray
+    method: str = eqx.field(static=True)
+
+    def report(self) -> str:
+        nr = self.name_residual_mm[np.isfinite(self.name_residual_mm)]
+        txt = (f"registration ({self.method}): scale {self.scale:.6g}; distance to scalp "
+               f"median {np.median(self.scalp_distance_mm):.2f} mm, max "
+               f"{np.max(self.scalp_distance_mm):.2f} mm")
+        if nr.size:
+            txt += f"; to named positions median {np.median(nr):.2f} mm, max {np.max(nr):.2f} mm"
+        return txt
+
+
+def _similarity(src: np.ndarray, dst: np.ndarray, scale: bool = True) -> np.ndarray:
+    """Least-squares similarity dst ~ s R src + t (Umeyama 1991, IEEE TPAMI 13:376), 4x4."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    u, d, vt = np.linalg.svd(b.T @ a / len(src))
+    e = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        e[2, 2] = -1.0  # a rotation, never a reflection
+    r = u @ e @ vt
+    s = float(np.trace(np.diag(d) @ e) / (a**2).sum(1).mean()) if scale else 1.0
+    m = np.eye(4)
+    m[:3, :3] = s * r
+    m[:3, 3] = mu_d - s * r @ mu_s
+    return m
+
+
+def _apply(m: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p @ m[:3, :3].T + m[:3, 3]
+
+
+def register_positions(mesh: TetMesh | Surface, positions, *, names=None, landmarks=None,
+                       icp: bool | None = None, scale: bool = True, max_iterations: int = 50,
+                       max_distance_mm: float = 10.0) -> Registration:
+    """Map electrode coordinates from a recording's own frame onto a head's scalp.
+
+    With `names` (at least 4 of them 10-10 / `EXTENDED` names), a similarity transform
+    (rotation, translation and, with `scale`, one scale factor; Umeyama 1991) takes the named
+    electrodes onto their positions on this head (`layout_positions`, so `landmarks` matter),
+    then, with `icp`, iterative closest points on the scalp refine it. Without names only ICP
+    runs, started from the centroids and RMS radii (rotation as given: the frame must be
+    roughly RAS). The positions are then projected onto the scalp; the residuals are reported.
+
+    Arguments:
+        mesh: the head TetMesh or its scalp Surface.
+        positions: (n_elec, 3) coordinates in any length unit and frame.
+        names: optional names, one per electrode (unknown names are simply not used).
+        landmarks: as in `layout_positions`.
+        icp: refine by closest points (default: only when there are no usable names).
+        scale: fit a scale factor (units); False keeps 1 (a recording already in mm).
+        max_iterations: ICP iterations.
+        max_distance_mm: a registered electrode farther than this from the scalp is an error.
+
+    Returns:
+        A `Registration` (positions on the scalp, transform, residuals; `report()`).
+    """
+    p = np.asarray(positions, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] < 3 or not np.all(np.isfinite(p)):
+        raise ValueError(f"`positions` must be (n_elec >= 3, 3) finite coordinates, got shape "
+                         f"{p.shape}.")
+    n = p.shape[0]
+    scalp = _Scalp(mesh)
+    known = {x.lower() for x in TEN_TEN + EXTENDED}
+    use = [] if names is None else [i for i, nm in enumerate(names)
+                                    if _canon(str(nm)).lower() in known]
+    if names is not None and len(names) != n:
+        raise ValueError(f"`names` has {len(names)} entries for {n} positions.")
+    resid = np.full(n, np.nan)
+    if len(use) >= 4:
+        _, target = _layout(scalp, [names[i] for i in use], landmarks)
+        m = _similarity(p[use], target, scale)
+        method = "names"
+        if icp:
+            method = "names+icp"
+    else:
+        if names is not None and icp is False:
+            raise ValueError(f"only {len(use)} of `names` are 10-10 names; registration by "
+                             "names needs >= 4 (or pass icp=True).")
+        v = scalp.tm.vertices
+        c_p, c_v = p.mean(0), v.mean(0)
+        s = (np.sqrt(((v - c_v) ** 2).sum(1).mean()) / np.sqrt(((p - c_p) ** 2).sum(1).mean())
+             if scale else 1.0)
+        m = np.eye(4)
+        m[:3, :3] *= s
+        m[:3, 3] = c_v - s * c_p
+        method, icp = "icp", True
+    if icp:
+        # Closest-point iterations (Besl & McKay 1992) with the similarity re-fitted each time.
+        for _ in range(int(max_iterations)):
+            q = _apply(m, p)
+            cp, _, _ = scalp.project(q)
+            m_new = _similarity(p, cp, scale)
+            if np.abs(_apply(m_new, p) - q).max() < 1e-6:
+                m = m_new
+                break
+            m = m_new
+    q = _apply(m, p)
+    on, dist, _ = scalp.project(q)
+    if use and len(use) >= 4:
+        resid[use] = np.linalg.norm(q[use] - target, axis=1)
+    far = np.flatnonzero(dist > max_distance_mm)
+    if far.size:
+        lab = [names[i] if names is not None else f"#{i}" for i in far[:10]]
+        raise ValueError(f"after registration electrodes {lab} are {np.round(dist[far[:10]], 1)} "
+                         f"mm from the scalp (> max_distance_mm={max_distance_mm}); check the "
+                         "names, landmarks or units.")
+    return Registration(positions_mm=on, matrix=m, scale=float(np.cbrt(np.linalg.det(m[:3, :3]))),
+                        scalp_distance_mm=dist, name_residual_mm=resid, method=method)
+
+
+def load_landmarks(path) -> dict[str, np.ndarray]:
+    """Nasion, inion and pre-auricular points (world mm) from a JSON or CSV file.
+
+    JSON: {"nasion": [x, y, z], "inion": [...], "lpa": [...], "rpa": [...]} (aliases nz, iz,
+    al/ar, left/right accepted; an optional "units": "mm" | "m"). CSV: lines ``name,x,y,z``
+    in mm. Fiducial files of templates (MNI152, fsaverage) give these in their own frame.
+    """
+    path = Path(path)
+    text = path.read_text(encoding="utf-8")
+    factor = 1.0
+    if path.suffix.lower() == ".json":
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path}: not JSON ({e}).") from e
+        unit = str(d.pop("units", "mm")).lower()
+        factor = {"mm": 1.0, "m": 1000.0, "cm": 10.0}.get(unit)
+        if factor is None:
+            raise ValueError(f"{path}: units {unit!r}; use mm, cm or m.")
+    else:
+        d = {}
+        for lineno, line in enumerate(text.splitlines(), 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            parts = [x.strip() for x in s.replace(";", ",").split(",")]
+            try:
+                d[parts[0]] = [float(x) for x in parts[1:4]]
+            except (ValueError, IndexError):
+                if lineno == 1:
+                    continue  # header
+                raise ValueError(f"{path}:{lineno}: expected name,x,y,z in mm, got {line!r}.") from None
+    try:
+        lm = _parse_landmarks({k: np.asarray(v, float) * factor for k, v in d.items()})
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from e
+    return lm
+
+
+def landmark_report(mesh: TetMesh | Surface, given) -> dict[str, float]:
+    """Distance (mm) of `estimate_landmarks(mesh)` from `given` landmarks, per landmark.
+
+    The estimate assumes RAS and a roughly spherical upper head; on real heads compare it with
+    the head's own fiducials this way before trusting named electrode positions.
+    """
+    lm = _parse_landmarks(given)
+    est = _estimate_landmarks(_Scalp(mesh))
+    return {k: float(np.linalg.norm(est[k] - lm[k])) for k in LANDMARKS}

@@ -390,3 +390,63 @@ def protocol_from_config(n_elec: int, cfg: ProtocolConfig = ProtocolConfig()) ->
     if cfg.kind == "opposite":
         return opposite(n_elec, current_a=cfg.current_a)
     return pair_drive(n_elec, cfg.source, cfg.sink, current_a=cfg.current_a)
+
+
+def reference_protocol(n_elec: int, reference: int, injections=None, *,
+                       include_injecting: bool = False,
+                       current_a: float = DEFAULT_CURRENT_A) -> Protocol:
+    """Every electrode measured against one common reference electrode that never injects.
+
+    The layout of UCL's head-EIT recordings (Goren et al. 2018, Sci. Data 5:180112: 33
+    electrodes, 31 injection pairs, each measured on the 30 non-injecting electrodes against
+    the reference, 930 rows). Rows are grouped by injection, in injection order, then electrode
+    order. Voltages against a reference whose true potential is unknown are fitted with a free
+    offset per injection (`fit_conductivities(..., offsets="per_injection")`).
+
+    Arguments:
+        n_elec: number of electrodes, the reference included (>= 4).
+        reference: 0-based index of the reference electrode.
+        injections: (n_inj, 2) 0-based [source, sink] pairs, none using the reference; default
+            the ring of adjacent pairs over the other electrodes (i, next non-reference i).
+        include_injecting: also measure the two injecting electrodes (their voltage includes
+            the contact impedance's drop I z / |e|: the only rows that inform per-electrode
+            contact impedances). UCL's pipeline discards them.
+        current_a: injected current in A.
+
+    Returns:
+        A `Protocol` with meas- = `reference` on every row.
+    """
+    n = _check_n(n_elec, 4)
+    if isinstance(reference, bool) or not isinstance(reference, (int, np.integer)) \
+            or not 0 <= reference < n:
+        raise ValueError(f"`reference` = {reference!r} is not an electrode index 0..{n - 1}.")
+    others = [e for e in range(n) if e != reference]
+    if injections is None:
+        inj = np.asarray([(others[i], others[(i + 1) % len(others)])
+                          for i in range(len(others))], dtype=np.int64)
+    else:
+        inj = np.asarray(injections)
+        if inj.ndim != 2 or inj.shape[1] != 2 or inj.shape[0] == 0 \
+                or not np.issubdtype(inj.dtype, np.integer):
+            raise ValueError(f"`injections` must be (n_inj, 2) integer [source, sink] pairs, "
+                             f"got shape {inj.shape} {inj.dtype}.")
+        bad = np.flatnonzero((inj < 0).any(1) | (inj >= n).any(1) | (inj[:, 0] == inj[:, 1]))
+        if bad.size:
+            raise ValueError(f"`injections` row {int(bad[0])} {inj[bad[0]].tolist()}: use two "
+                             f"different electrodes in 0..{n - 1}.")
+        uses = np.flatnonzero((inj == reference).any(1))
+        if uses.size:
+            raise ValueError(f"`injections` row {int(uses[0])} {inj[uses[0]].tolist()} uses the "
+                             f"reference electrode {reference}; the reference never injects.")
+    rows = []
+    for s, k in inj.tolist():
+        for m in others:
+            if include_injecting or m not in (s, k):
+                rows.append((s, k, m, reference))
+    return Protocol(np.asarray(rows, dtype=np.int64), current_a).check(n)
+
+
+def common_reference(protocol: Protocol) -> int | None:
+    """The meas- electrode shared by every row (a reference-electrode protocol), else None."""
+    m = np.unique(protocol.rows[:, 3])
+    return int(m[0]) if m.size == 1 else None

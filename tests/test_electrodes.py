@@ -363,3 +363,89 @@ def test_electrode_positions_match_placed_centres(mesh, layout):
     np.testing.assert_allclose(pos, e.centres, atol=1e-6)
     with pytest.raises(ValueError, match="refine_mesh"):
         ElectrodeConfig(refine_mesh="yes")
+
+
+# ---------------------------------------------------------------------------------------------
+# Extended names, mixed names and coordinates, registration, landmark files (issue 15)
+
+from jaxhead.electrodes import (  # noqa: E402
+    EXTENDED,
+    landmark_report,
+    load_landmarks,
+    register_positions,
+)
+
+UCL = ["Fp1", "Fp2", "F7", "F3", "Fz", "F4", "F8", "FC5", "FC1", "FC2", "FC6", "T7", "C3", "Cz",
+       "C4", "T8", "CP5", "CP1", "CP2", "CP6", "P7", "P3", "Pz", "P4", "P8", "TP9", "TP10", "O1",
+       "Oz", "O2", "I1", "I2", "NFpz"]
+
+
+def test_extended_names_match_sphere_geometry(mesh):
+    names, pos = layout_positions(mesh, list(EXTENDED) + ["I1", "I2"], landmarks=LANDMARKS)
+    got = dict(zip(names, pos))
+    # the 0 % ring is the equator (landmarks on it), cut at 10 % steps from Nz (+y) through
+    # T9 (-x) to Iz (-y): fraction f sits 180 f degrees from +y (T9 at 50 %, TP9 60 %, O9 90 %)
+    ring = ("AF", "F", "FT", "T", "TP", "P", "PO", "O")
+    for k, r in enumerate(ring):
+        a = np.radians(18.0 * (k + 2))  # AF9 at 20 %, as AF7 on the 10 % ring
+        np.testing.assert_allclose(got[f"{r}9"], R * np.array([-np.sin(a), np.cos(a), 0]), atol=1.0)
+        np.testing.assert_allclose(got[f"{r}10"], R * np.array([np.sin(a), np.cos(a), 0]), atol=1.0)
+    np.testing.assert_allclose(got["I1"], got["O9"])  # I1/I2 are O9/O10 (UCL's names)
+    np.testing.assert_allclose(got["Nz"], [0, R, 0], atol=1.0)
+    np.testing.assert_allclose(got["Iz"], [0, -R, 0], atol=1.0)
+    # the midline 10-5 points: NFpz at 5 % (9 deg above the nasion), ..., OIz at 95 %
+    np.testing.assert_allclose(got["NFpz"], R * np.array([0, np.cos(np.radians(9)),
+                                                          np.sin(np.radians(9))]), atol=1.0)
+    np.testing.assert_allclose(got["CCPz"], R * np.array([0, -np.sin(np.radians(9)),
+                                                          np.cos(np.radians(9))]), atol=1.0)
+    with pytest.raises(ValueError, match="unknown electrode names"):
+        layout_positions(mesh, ["TP11"], landmarks=LANDMARKS)
+
+
+def test_ucl_montage_and_mixed_names_and_coordinates(mesh):
+    el = place_electrodes(mesh, UCL, radius_mm=5.0, landmarks=LANDMARKS)
+    assert el.names == tuple(UCL) and el.n_elec == 33
+    xyz = _sph(60.0, 200.0)
+    mixed = place_electrodes(mesh, ["Cz", tuple(xyz), "TP9"], radius_mm=5.0,
+                             landmarks=LANDMARKS)
+    assert mixed.names == ("Cz", "E2", "TP9")
+    np.testing.assert_allclose(mixed.centres[0], el.centres[UCL.index("Cz")])
+    np.testing.assert_allclose(mixed.centres[2], el.centres[UCL.index("TP9")])
+    assert np.linalg.norm(mixed.centres[1] - xyz) < 0.5  # projected onto the polyhedron
+    with pytest.raises(ValueError, match=r"positions\[1\]"):
+        place_electrodes(mesh, ["Cz", (1.0, 2.0)], landmarks=LANDMARKS)
+
+
+def test_register_positions_recovers_a_similarity(mesh):
+    names, pos = layout_positions(mesh, UCL, landmarks=LANDMARKS)
+    t = np.radians(25.0)
+    rot = np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]])
+    rec = (pos @ rot.T + [10.0, -5.0, 3.0]) / 1000.0  # metres, in another frame
+    reg = register_positions(mesh, rec, names=names, landmarks=LANDMARKS)
+    # exact correspondences: the similarity is recovered to round-off
+    np.testing.assert_allclose(reg.positions_mm, pos, atol=1e-6)
+    assert abs(reg.scale - 1000.0) < 1e-6 and np.nanmax(reg.name_residual_mm) < 1e-6
+    assert "scale 1000" in reg.report()
+    # without names: closest points from centroid/radius alignment (frame roughly right)
+    rot5 = np.array([[np.cos(0.05), -np.sin(0.05), 0], [np.sin(0.05), np.cos(0.05), 0], [0, 0, 1]])
+    reg2 = register_positions(mesh, (pos @ rot5.T) / 1000.0)
+    assert reg2.method == "icp" and np.median(reg2.scalp_distance_mm) < 1.0
+    assert abs(reg2.scale / 1000.0 - 1) < 0.05
+
+
+def test_landmark_file_and_report(mesh, tmp_path):
+    (tmp_path / "f.json").write_text(
+        '{"units": "m", "nz": [0, 0.096, 0], "iz": [0, -0.096, 0], "lpa": [-0.096, 0, 0], '
+        '"rpa": [0.096, 0, 0]}')
+    lm = load_landmarks(tmp_path / "f.json")
+    np.testing.assert_allclose(lm["nasion"], [0, R, 0])
+    (tmp_path / "f.csv").write_text("name,x,y,z\nnasion,0,96,0\ninion,0,-96,0\n"
+                                    "lpa,-96,0,0\nrpa,96,0,0\n")
+    lm2 = load_landmarks(tmp_path / "f.csv")
+    for k in lm:
+        np.testing.assert_allclose(lm2[k], lm[k])
+    rep = landmark_report(mesh, lm)
+    assert max(rep.values()) < 1.0  # the sphere's estimate is exact up to its faces
+    (tmp_path / "bad.csv").write_text("name,x,y,z\nnasion,0,96\n")
+    with pytest.raises(ValueError, match=r"bad.csv"):
+        load_landmarks(tmp_path / "bad.csv")

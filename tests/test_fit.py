@@ -133,3 +133,177 @@ def test_failure_is_data_with_throw_false(sphere_model, protocol):
     assert res.result == optx.RESULTS.nonlinear_max_steps_reached and not res.success
     with pytest.raises(Exception, match="maximum number of steps"):
         fit_conductivities(sphere_model, protocol, measured, init=default_sigma(), max_steps=2)
+
+
+# ---------------------------------------------------------------------------------------------
+# Measured data (issue 15): reference electrode, free offsets, gain, per-electrode contact
+# impedances, robust rejection, spectra. A 16-electrode sphere keeps these fast.
+
+from jaxhead.fem import simulate as _simulate  # noqa: E402
+from jaxhead.inverse.fit import fit_spectrum  # noqa: E402
+from jaxhead.io import Measurements  # noqa: E402
+from jaxhead.protocol import reference_protocol  # noqa: E402
+
+N_REF = 16
+
+
+@pytest.fixture(scope="module")
+def ref_model():
+    mesh = structured_sphere_mesh(h_mm=18.0)
+    el = place_electrodes(mesh, spread_positions(mesh, N_REF), radius_mm=10.0)
+    return build_forward_model(mesh, el)
+
+
+@pytest.fixture(scope="module")
+def z_true():
+    # lognormal contact impedances with a factor-2 geometric spread around the default
+    return 0.02 * np.exp(np.random.default_rng(3).normal(0.0, np.log(2.0), N_REF))
+
+
+def test_free_offsets_fit_and_se_invariant_and_match_joint_fit(ref_model):
+    prot = reference_protocol(N_REF, N_REF - 1)
+    v = np.asarray(_simulate(ref_model, TRUE, prot))
+    m = add_noise(v, 0.5, seed=4)
+    std = noise_std(v, 0.5)
+    c = np.random.default_rng(5).normal(0, 10 * np.abs(v).max(), prot.n_inj)  # large offsets
+    a = fit_conductivities(ref_model, prot, m, init=default_sigma(), noise_std=std,
+                           offsets="per_injection")
+    b = fit_conductivities(ref_model, prot, m + c[prot.drive_index], init=default_sigma(),
+                           noise_std=std, offsets="per_injection")
+    # The projection removes the offsets exactly (to round-off ~1e-16 |c| / std ~ 1e-12 in
+    # the residuals), so both fits take the same steps: estimates and SEs agree far below
+    # the solver's 1e-6 tolerance.
+    np.testing.assert_allclose(b.sigma, a.sigma, rtol=1e-8)
+    np.testing.assert_allclose(b.std_error, a.std_error, rtol=1e-8)
+    np.testing.assert_allclose(b.offsets - a.offsets, c, rtol=1e-8, atol=1e-12 * np.abs(c).max())
+    assert np.all(np.abs(a.sigma - TRUE) <= 4 * a.std_error)
+    # Standard errors = the joint fit's with the offsets as explicit parameters: the
+    # (sigma, offsets) Gauss-Newton matrix from the adjoint Jacobian, inverted, sigma block.
+    J = np.asarray(jacobian(ref_model, a.sigma, prot, per="tissue")) / std[:, None]
+    A = np.zeros((prot.n_rows, prot.n_inj))
+    A[np.arange(prot.n_rows), prot.drive_index] = 1.0
+    full = np.hstack([J, A / std[:, None]])
+    cov = np.linalg.inv(full.T @ full)[:4, :4]
+    np.testing.assert_allclose(a.std_error, np.sqrt(np.diag(cov)), rtol=1e-6)
+    # without offsets the same data (offsets added) cannot be fitted
+    bad = fit_conductivities(ref_model, prot, m + c[prot.drive_index], init=default_sigma(),
+                             noise_std=std, throw=False)
+    assert not bad.success or np.any(np.abs(bad.sigma / TRUE - 1) > 0.1)
+
+
+def test_gain_is_a_scale_and_needs_an_anchor(ref_model, z_true):
+    prot = reference_protocol(N_REF, N_REF - 1)
+    # The invariant behind it: V(c sigma, z / c) = V(sigma, z) / c.
+    v1 = np.asarray(_simulate(ref_model, TRUE, prot, contact_impedance=z_true))
+    v2 = np.asarray(_simulate(ref_model, 2.5 * TRUE, prot, contact_impedance=z_true / 2.5))
+    np.testing.assert_allclose(v2, v1 / 2.5, rtol=1e-9)
+    with pytest.raises(ValueError, match="only up to the gain"):
+        fit_conductivities(ref_model, prot, v1, init=default_sigma(), gain=True)
+    # CSF fixed at its true value anchors the scale: noise-free data are fitted exactly.
+    init = default_sigma().copy()
+    init[1] = TRUE[1]
+    res = fit_conductivities(ref_model, prot, 1.1 * np.asarray(_simulate(ref_model, TRUE, prot)),
+                             init=init, fit=("brain", "skull", "scalp"), gain=True,
+                             solver=LineSearchGaussNewton(rtol=1e-9, atol=1e-9))
+    np.testing.assert_allclose(res.sigma, TRUE, rtol=1e-5)
+    assert abs(res.gain / 1.1 - 1) < 1e-5 and res.fitted[-1] == "gain"
+    # a prior on one tissue is the other anchor; its SE cannot exceed the prior's
+    res = fit_conductivities(ref_model, prot, 1.1 * np.asarray(_simulate(ref_model, TRUE, prot)),
+                             init=default_sigma(), gain=True, priors={"csf": (TRUE[1], 0.02)})
+    np.testing.assert_allclose(res.sigma, TRUE, rtol=1e-4)
+    assert res.std_error[1] / res.estimates[1] <= 0.02 + 1e-12
+
+
+def test_per_electrode_contact_impedances(ref_model, z_true):
+    # Only current-carrying electrodes see their contact impedance directly: measure them.
+    prot = reference_protocol(N_REF, N_REF - 1, include_injecting=True)
+    v = np.asarray(_simulate(ref_model, TRUE, prot, contact_impedance=z_true))
+    res = fit_conductivities(ref_model, prot, v, init=default_sigma(), noise_std=1e-4 * np.abs(v),
+                             contact_impedance="per_electrode", contact_prior=2.0,
+                             offsets="per_injection")
+    carrying = np.unique(prot.injections)
+    assert N_REF - 1 not in carrying
+    np.testing.assert_allclose(res.contact_impedance[carrying], z_true[carrying], rtol=1e-3)
+    np.testing.assert_allclose(res.sigma, TRUE, rtol=1e-3)
+    names = [f"z:{n}" for n in ref_model.electrode_names]
+    assert list(res.fitted[4:]) == names
+    se = res.std_error[4:] / res.estimates[4:]
+    # the reference never carries current: only its shunting informs its value
+    assert se[N_REF - 1] > 10 * np.max(se[carrying]), se
+
+
+def test_robust_fit_rejects_corrupted_channels(ref_model):
+    prot = reference_protocol(N_REF, N_REF - 1)
+    v = np.asarray(_simulate(ref_model, TRUE, prot))
+    m = add_noise(v, 0.5, seed=6)
+    bad = np.sort(np.random.default_rng(7).choice(prot.n_rows, prot.n_rows // 20, replace=False))
+    m[bad] *= 1.2
+    std = noise_std(m, 0.5)
+    res = fit_conductivities(ref_model, prot, m, init=default_sigma(), noise_std=std,
+                             offsets="per_injection", loss="cauchy", reject_sigma=5.0)
+    np.testing.assert_array_equal(res.rejected, bad)
+    assert np.all(np.abs(res.sigma - TRUE) <= 4 * res.std_error)
+    assert 0.7 < res.residual_scale < 1.3  # the noise model fits the kept channels
+    assert f"rejected {bad.size} channels" in res.table()
+    plain = fit_conductivities(ref_model, prot, m, init=default_sigma(), noise_std=std,
+                               offsets="per_injection")
+    assert plain.rejected.size == 0 and plain.residual_scale > res.residual_scale
+
+
+def test_fit_spectrum(ref_model, tmp_path):
+    prot = reference_protocol(N_REF, N_REF - 1)
+    truths = [TRUE, TRUE * np.array([1.2, 1.0, 1.5, 1.1])]
+    volts = np.stack([np.asarray(_simulate(ref_model, t, prot)) for t in truths])
+    meas = Measurements(rows=prot.rows, voltages=volts, frequencies_hz=np.array([10.0, 1e3]),
+                        current_a=prot.current_a)
+    spec = fit_spectrum(ref_model, meas, init=default_sigma())
+    np.testing.assert_allclose(spec.estimates, np.stack(truths), rtol=1e-5)
+    assert "1000" in spec.table()
+    spec.to_csv(tmp_path / "s.csv")
+    spec.plot(tmp_path / "s.png")
+    assert (tmp_path / "s.png").stat().st_size > 0
+    one = fit_spectrum(ref_model, meas, init=default_sigma(), frequencies_hz=1e3)
+    np.testing.assert_allclose(one.estimates[0], truths[1], rtol=1e-5)
+    with pytest.raises(ValueError, match="frequency 50.0 Hz is not in the file"):
+        fit_spectrum(ref_model, meas, init=default_sigma(), frequencies_hz=50.0)
+
+
+def test_measured_fit_errors(ref_model):
+    prot = reference_protocol(N_REF, N_REF - 1)
+    m = np.ones(prot.n_rows) * 1e-3
+    with pytest.raises(ValueError, match="offsets"):
+        fit_conductivities(ref_model, prot, m, init=TRUE, offsets="per_row")
+    with pytest.raises(ValueError, match="loss"):
+        fit_conductivities(ref_model, prot, m, init=TRUE, loss="l1")
+    with pytest.raises(ValueError, match="geometric standard deviation"):
+        fit_conductivities(ref_model, prot, m, init=TRUE, contact_impedance="per_electrode",
+                           contact_prior=0.5)
+    with pytest.raises(ValueError, match="`priors` names 'gain'"):
+        fit_conductivities(ref_model, prot, m, init=TRUE, priors={"gain": (1.0, 0.1)})
+    bad = m.copy()
+    bad[3] = np.nan
+    with pytest.raises(ValueError, match=r"NaN or Inf \(first at index \[3\]\)"):
+        fit_conductivities(ref_model, prot, bad, init=TRUE)
+
+
+def test_ucl_file_round_trip_is_fitted(ref_model, tmp_path):
+    """A UCL-layout recording (JSON + MATLAB v7.3 in mV, 1-based, metres) written here, read
+    back and fitted at two frequencies with free offsets (an unknown reference potential)."""
+    import json
+
+    from jaxhead.io import load_measurements
+    from test_measurements import write_mat73
+
+    prot = reference_protocol(N_REF, N_REF - 1)
+    truths = [TRUE, TRUE * np.array([1.1, 1.0, 1.3, 1.05])]
+    rng = np.random.default_rng(8)
+    volts = np.stack([np.asarray(_simulate(ref_model, t, prot)) for t in truths])
+    volts = volts + rng.normal(0, 1e-3, (2, prot.n_inj))[:, prot.drive_index]  # reference offsets
+    settings = {"Freq": [10.0, 500.0], "Protocol": (prot.rows + 1).tolist(),
+                "ElectrodePosition": (np.zeros((N_REF, 3)) + 0.09).tolist(),
+                "CurrentA": prot.current_a}
+    (tmp_path / "r.json").write_text(json.dumps(settings))
+    write_mat73(tmp_path / "r.mat", {"V": volts.T * 1e3})
+    meas = load_measurements(tmp_path / "r.json")
+    spec = fit_spectrum(ref_model, meas, init=default_sigma(), offsets="per_injection")
+    np.testing.assert_allclose(spec.estimates, np.stack(truths), rtol=1e-5)

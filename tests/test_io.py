@@ -583,3 +583,145 @@ def test_surface_bad_input(tmp_path):
     (tmp_path / "bad.stl").write_bytes(b"\0" * 10)
     with pytest.raises(ValueError, match=r"bad\.stl"):
         load_surface(tmp_path / "bad.stl", "brain")
+
+
+# ---------------------------------------------------------------------------------------------
+# Meshes made elsewhere (issue 15): EIDORS .mat (v5, v7.3), SimNIBS .msh, facing direction
+
+import h5py  # noqa: E402
+
+from jaxhead.electrodes import place_electrodes, spread_positions  # noqa: E402
+from jaxhead.fem import build_forward_model, simulate  # noqa: E402
+from jaxhead.io import SIMNIBS_TISSUE_MAP, head_facing  # noqa: E402
+from jaxhead.protocol import Protocol  # noqa: E402
+from jaxhead.tissue import default_sigma  # noqa: E402
+from sphere_mesh import structured_sphere_mesh  # noqa: E402
+
+EIDORS_NAMES = ["scalp", "skull", "csf", "grey matter", "white matter"]
+
+
+@pytest.fixture(scope="module")
+def head_like():
+    """A four-shell ball with a neck: its lower part sheared backwards (towards -y) like a
+    head's neck, so it faces +y (RAS). A shear keeps every tet's volume."""
+    m = structured_sphere_mesh(h_mm=24.0)
+    x = m.nodes.copy()
+    x[:, 1] -= 25.0 * np.clip(-x[:, 2] / 96.0, 0, None) ** 2
+    return TetMesh(x, m.tets, m.labels)
+
+
+def _eidors_ref(mesh):
+    # brain tets alternate grey / white matter: both must map to BRAIN by name
+    tissue_to_mat = {4: 1, 3: 2, 2: 3}
+    ref = np.array([tissue_to_mat.get(int(t), 4 + i % 2) for i, t in enumerate(mesh.labels)])
+    return ref
+
+
+def _rotz(x, deg):
+    t = np.radians(deg)
+    return x @ np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]]).T
+
+
+def _reciprocal_forward(mesh):
+    """Forward model on the loaded mesh; transfer impedances are reciprocal (V_ab,cd = V_cd,ab)."""
+    el = place_electrodes(mesh, spread_positions(mesh, 8), radius_mm=12.0)
+    model = build_forward_model(mesh, el)
+    p = Protocol(np.array([[0, 4, 2, 6], [2, 6, 0, 4], [1, 5, 3, 7], [3, 7, 1, 5]]))
+    v = np.asarray(simulate(model, default_sigma(), p))
+    # float64 direct solve: reciprocity holds to ~kappa eps; 1e-8 relative leaves margin
+    np.testing.assert_allclose(v[[1, 3]], v[[0, 2]], rtol=1e-8)
+    assert np.all(np.abs(v) > 0)
+
+
+def test_eidors_mat_v5_loads_with_tissues_by_name(tmp_path, head_like):
+    scipy.io.savemat(tmp_path / "e.mat", {
+        "vtx": head_like.nodes, "tri": (head_like.tets + 1).astype(float),
+        "materials": {"ref": _eidors_ref(head_like).astype(float).reshape(-1, 1),
+                      "names": np.array(EIDORS_NAMES, dtype=object)}})
+    m = load_mesh(tmp_path / "e.mat")
+    np.testing.assert_array_equal(m.labels, head_like.labels)
+    np.testing.assert_array_equal(m.tets, head_like.tets)
+    _reciprocal_forward(m)
+
+
+def _write_eidors_v73(path, mesh, names, vtx_scale=1.0):
+    with h5py.File(path, "w", userblock_size=512) as f:
+        for k, a in (("vtx", mesh.nodes * vtx_scale), ("tri", mesh.tets + 1.0)):
+            d = f.create_dataset(k, data=np.asarray(a, float).T)  # MATLAB is column-major
+            d.attrs["MATLAB_class"] = np.bytes_("double")
+        g = f.create_group("materials")
+        g.attrs["MATLAB_class"] = np.bytes_("struct")
+        d = g.create_dataset("ref", data=_eidors_ref(mesh)[None, :].astype(float))
+        d.attrs["MATLAB_class"] = np.bytes_("double")
+        refs = f.create_group("#refs#")
+        rs = []
+        for i, n in enumerate(names):
+            c = refs.create_dataset(f"n{i}", data=np.array([ord(ch) for ch in n], np.uint16)[:, None])
+            c.attrs["MATLAB_class"] = np.bytes_("char")
+            rs.append(c.ref)
+        d = g.create_dataset("names", data=np.array(rs, dtype=h5py.ref_dtype)[:, None])
+        d.attrs["MATLAB_class"] = np.bytes_("cell")
+    with open(path, "r+b") as fh:
+        fh.write(b"MATLAB 7.3 MAT-file".ljust(116) + b"\0" * 8 + b"\x00\x02IM")
+
+
+def test_eidors_mat_v73_units_and_unmapped_tissues(tmp_path, head_like):
+    _write_eidors_v73(tmp_path / "e73.mat", head_like, EIDORS_NAMES)
+    m = load_mesh(tmp_path / "e73.mat")
+    np.testing.assert_array_equal(m.labels, head_like.labels)
+    np.testing.assert_allclose(m.nodes, head_like.nodes, rtol=0, atol=0)
+    # metres: refused unless said
+    _write_eidors_v73(tmp_path / "m.mat", head_like, EIDORS_NAMES, vtx_scale=1e-3)
+    with pytest.raises(ValueError, match=r"m\.mat.*spans 0\.19.*units='m'"):
+        load_mesh(tmp_path / "m.mat")
+    np.testing.assert_allclose(load_mesh(tmp_path / "m.mat", units="m").nodes, head_like.nodes,
+                               rtol=1e-12)
+    # a tissue jaxhead does not know: an error naming it and the fix
+    names = EIDORS_NAMES[:4] + ["air"]
+    _write_eidors_v73(tmp_path / "air.mat", head_like, names)
+    with pytest.raises(ValueError, match=r"air\.mat.*labels 5 \(air\) have no jaxhead tissue.*tissue_map="):
+        load_mesh(tmp_path / "air.mat")
+    m = load_mesh(tmp_path / "air.mat", tissue_map={"air": "brain"})
+    np.testing.assert_array_equal(m.labels, head_like.labels)
+
+
+def test_eidors_mat_zero_based_is_an_error(tmp_path, head_like):
+    scipy.io.savemat(tmp_path / "z.mat", {
+        "vtx": head_like.nodes, "tri": head_like.tets.astype(float),
+        "materials": {"ref": _eidors_ref(head_like).astype(float),
+                      "names": np.array(EIDORS_NAMES, dtype=object)}})
+    with pytest.raises(ValueError, match=r"`tri` must hold 1-based .* minimum is 0.*Add 1"):
+        load_mesh(tmp_path / "z.mat")
+
+
+def test_simnibs_msh_needs_and_takes_a_tissue_map(tmp_path, head_like):
+    # SimNIBS tags: 1 WM, 2 GM, 3 CSF, 4 bone, 5 scalp, 6 eyes; no PhysicalNames
+    simnibs_of = {1: (1, 2), 2: (3,), 3: (4,), 4: (5, 6)}
+    tags = np.array([simnibs_of[int(t)][i % len(simnibs_of[int(t)])]
+                     for i, t in enumerate(head_like.labels)])
+    mm = meshio.Mesh(head_like.nodes, [("tetra", head_like.tets)],
+                     cell_data={"gmsh:physical": [tags], "gmsh:geometrical": [tags]})
+    meshio.write(tmp_path / "s.msh", mm, file_format="gmsh22", binary=True)
+    with pytest.raises(ValueError, match=r"s\.msh.*6 \(eye balls\).*tissue_map='simnibs'"):
+        load_mesh(tmp_path / "s.msh")
+    with pytest.raises(ValueError, match=r"labels 6 have no jaxhead tissue"):
+        load_mesh(tmp_path / "s.msh", tissue_map="simnibs")
+    m = load_mesh(tmp_path / "s.msh", tissue_map={**SIMNIBS_TISSUE_MAP, 6: "scalp"})
+    np.testing.assert_array_equal(m.labels, head_like.labels)
+    _reciprocal_forward(m)
+
+
+@pytest.mark.parametrize("deg,faces", [(180, "-y"), (90, "-x"), (-90, "+x")])
+def test_mesh_facing_away_from_plus_y(tmp_path, head_like, deg, faces):
+    assert head_facing(head_like.nodes, head_like.tets)["anterior"] == "+y"
+    turned = TetMesh(_rotz(head_like.nodes, deg), head_like.tets, head_like.labels)
+    assert head_facing(turned.nodes, turned.tets)["anterior"] == faces
+    save_mesh(turned, tmp_path / "t.msh")
+    with pytest.raises(ValueError, match=rf"t\.msh.*faces \{faces}.*RAS.*facing='reorient'"):
+        load_mesh(tmp_path / "t.msh")
+    back = load_mesh(tmp_path / "t.msh", facing="reorient")
+    np.testing.assert_allclose(back.nodes, head_like.nodes, atol=1e-9)
+    assert load_mesh(tmp_path / "t.msh", facing="ignore").n_tets == head_like.n_tets
+    # a ball has no neck: nothing is claimed, nothing refused
+    ball = structured_sphere_mesh(h_mm=24.0)
+    assert head_facing(ball.nodes, ball.tets)["anterior"] is None

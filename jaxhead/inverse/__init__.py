@@ -8,6 +8,8 @@ from .fit import FitResult as FitResult
 from .fit import LineSearchGaussNewton as LineSearchGaussNewton
 from .fit import fit_conductivities as fit_conductivities
 from .fit import fit_conductivities_batch as fit_conductivities_batch
+from .fit import Spectrum as Spectrum
+from .fit import fit_spectrum as fit_spectrum
 from .grid import Grid as Grid
 from .grid import grid_to_tets as grid_to_tets
 from .grid import jacobian_grid as jacobian_grid
@@ -31,7 +33,7 @@ from .perturbation import spherical_perturbation as spherical_perturbation
 __all__ = [
     "SVD", "TSVD", "ApproximationError", "FitResult", "Grid", "ImageMetrics", "LineSearchGaussNewton",
     "Reconstruction", "Tikhonov", "add_noise", "approximation_error", "fit_conductivities",
-    "fit_conductivities_batch", "grid_to_tets", "image_metrics", "jacobian_grid", "jacobian_to_grid",
+    "fit_conductivities_batch", "fit_spectrum", "Spectrum", "grid_to_tets", "image_metrics", "jacobian_grid", "jacobian_to_grid",
     "make_grid", "noise_std", "perturbation_mask", "reconstruct", "reconstruct_batch",
     "sample_conductivities", "simulate_difference", "spherical_perturbation", "svd",
 ]
