@@ -1,8 +1,21 @@
 """Segmentation-error studies: perturbed heads (morphed or re-meshed), what each changes, the
 first-order counterpart, and a Dask engine that runs many samples.  [host + jax]"""
 
+from .first_order import displacement_sensitivity as displacement_sensitivity
+from .first_order import first_order_summary as first_order_summary
+from .first_order import fit_map as fit_map
+from .first_order import linear_prediction as linear_prediction
+from .first_order import node_gradients as node_gradients
+from .first_order import voltage_covariance as voltage_covariance
 from .grf import grf_covariance as grf_covariance
 from .grf import sample_grf as sample_grf
+from .measures import MEASURE_COLUMNS as MEASURE_COLUMNS
+from .measures import MeasureConfig as MeasureConfig
+from .measures import Reference as Reference
+from .measures import blob_centre as blob_centre
+from .measures import blob_data as blob_data
+from .measures import blob_sigma as blob_sigma
+from .measures import measure as measure
 from .morph import Interface as Interface
 from .morph import Morph as Morph
 from .morph import MorphError as MorphError
@@ -13,7 +26,4 @@ from .morph import laplacian as laplacian
 from .morph import morph_nodes as morph_nodes
 from .morph import morph_quality as morph_quality
 
-__all__ = [
-    "Interface", "Morph", "MorphError", "MorphQuality", "build_morph", "grf_covariance",
-    "interface_surfaces", "laplacian", "morph_nodes", "morph_quality", "sample_grf",
-]
+__all__ = sorted(n for n in dir() if not n.startswith("_") and n not in ("annotations",) and n not in ("grf", "morph", "measures", "first_order", "perturb", "config", "engine"))
