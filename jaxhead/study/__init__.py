@@ -16,6 +16,13 @@ from .measures import blob_centre as blob_centre
 from .measures import blob_data as blob_data
 from .measures import blob_sigma as blob_sigma
 from .measures import measure as measure
+from .perturb import LABEL_KINDS as LABEL_KINDS
+from .perturb import dilate_erode as dilate_erode
+from .perturb import jitter_electrodes as jitter_electrodes
+from .perturb import perturb_labels as perturb_labels
+from .perturb import scale_thickness as scale_thickness
+from .perturb import skull_close as skull_close
+from .perturb import skull_hole as skull_hole
 from .morph import Interface as Interface
 from .morph import Morph as Morph
 from .morph import MorphError as MorphError
