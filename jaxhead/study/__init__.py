@@ -1,6 +1,18 @@
 """Segmentation-error studies: perturbed heads (morphed or re-meshed), what each changes, the
 first-order counterpart, and a Dask engine that runs many samples.  [host + jax]"""
 
+from .config import KINDS as KINDS
+from .config import PerturbationConfig as PerturbationConfig
+from .config import ReferenceConfig as ReferenceConfig
+from .config import StudyConfig as StudyConfig
+from .config import load_study_config as load_study_config
+from .config import study_config_from_dict as study_config_from_dict
+from .engine import COLUMNS as COLUMNS
+from .engine import build_parser_hook as build_parser_hook
+from .engine import connect as connect
+from .engine import expand_samples as expand_samples
+from .engine import run_study as run_study
+from .engine import summarise as summarise
 from .first_order import displacement_sensitivity as displacement_sensitivity
 from .first_order import first_order_summary as first_order_summary
 from .first_order import fit_map as fit_map
