@@ -153,3 +153,16 @@ def test_sample_seeds_are_distinct_and_stable():
     a, b = expand_samples(cfg), expand_samples(cfg)
     assert a == b and len({s["seed"] for s in a}) == 5
     assert [s["route"] for s in a] == ["morph"] * 3 + ["remesh"] * 2
+
+
+def test_shipped_configs_load():
+    import pathlib
+
+    root = pathlib.Path(__file__).parent.parent / "configs"
+    quick = load_study_config(root / "study_quick.toml")
+    kinds = {p.kind for p in quick.perturbations}
+    routes = {p.realised_by for p in quick.perturbations}
+    assert len(expand_samples(quick)) == 4 and len(kinds) == 2 and routes == {"morph", "remesh"}
+    assert quick.reference.voxel_mm == 4.0
+    full = load_study_config(root / "segmentation_sensitivity.toml")
+    assert {p.realised_by for p in full.perturbations} == {"morph", "remesh", "electrodes"}

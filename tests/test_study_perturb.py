@@ -85,6 +85,13 @@ def test_skull_hole_is_seeded_and_closing_undoes_it(spheres):
     assert count(closed, 3) <= count(lm, 3) + 0.05 * lost  # it adds no skull elsewhere
 
 
+def test_none_is_the_identity(spheres):
+    lm, _ = spheres
+    out, d = perturb_labels(lm, "none", amplitude=0.0)
+    np.testing.assert_array_equal(out.labels, lm.labels)
+    assert d["voxels_changed"] == 0
+
+
 def test_unknown_kind_and_bad_amplitude(spheres):
     lm, _ = spheres
     with pytest.raises(ValueError, match="unknown label perturbation 'wobble'"):

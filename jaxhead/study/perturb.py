@@ -23,6 +23,8 @@ from ..volume import LabelMap, voxel_sizes
 
 #: Label-map perturbation kinds (the re-mesh route) and what their amplitude means.
 LABEL_KINDS = {
+    "none": "ignored: the unperturbed map re-meshed, the route's own noise floor (meshing "
+            "differences alone)",
     "dilate": "voxels the tissue's outer interface moves outward (k >= 1)",
     "erode": "voxels the tissue's outer interface moves inward (k >= 1)",
     "skull_scale": "factor on the skull's local thickness (> 0; 1 = unchanged)",
@@ -189,7 +191,9 @@ def perturb_labels(labels: LabelMap, kind: str, *, tissue=None, amplitude: float
     """
     if kind not in LABEL_KINDS:
         raise ValueError(f"unknown label perturbation {kind!r}; use one of {sorted(LABEL_KINDS)}.")
-    if kind == "dilate":
+    if kind == "none":
+        out = _out(labels, _check(labels), _check(labels), {"kind": "none"})
+    elif kind == "dilate":
         out = dilate_erode(labels, tissue, int(amplitude))
     elif kind == "erode":
         out = dilate_erode(labels, tissue, -int(amplitude))
