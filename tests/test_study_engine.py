@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from sphere_mesh import structured_sphere_mesh
 
 from jaxhead.io import save_mesh
 from jaxhead.study import (
@@ -14,7 +15,6 @@ from jaxhead.study import (
     run_study,
     study_config_from_dict,
 )
-from sphere_mesh import structured_sphere_mesh
 
 TOML = """
 [study]

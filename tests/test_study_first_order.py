@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_fem_assembly import small_model
 
 from jaxhead.fem import build_forward_model, simulate
 from jaxhead.protocol import adjacent
@@ -22,7 +23,6 @@ from jaxhead.study import (
     voltage_covariance,
 )
 from jaxhead.tissue import Tissue
-from test_fem_assembly import small_model
 
 SIGMA = np.array([0.3, 1.79, 0.018, 0.44])
 

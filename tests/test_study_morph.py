@@ -5,6 +5,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from sphere_mesh import RADII_MM, structured_sphere_mesh
+from test_fem_assembly import small_model
 
 from jaxhead.fem import build_forward_model, simulate
 from jaxhead.protocol import adjacent
@@ -18,9 +20,6 @@ from jaxhead.study import (
     morph_quality,
     sample_grf,
 )
-from jaxhead.tissue import Tissue
-from sphere_mesh import RADII_MM, structured_sphere_mesh
-from test_fem_assembly import small_model
 
 
 @pytest.fixture(scope="module")

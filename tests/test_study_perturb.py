@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
+from test_fem_assembly import small_model
 
 from jaxhead.study import jitter_electrodes, perturb_labels
 from jaxhead.volume import LabelMap, default_affine
-from test_fem_assembly import small_model
 
 RADII = (30.0, 34.0, 40.0, 46.0)  # brain, CSF, skull, scalp outer radii (mm)
 

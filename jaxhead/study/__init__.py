@@ -28,13 +28,6 @@ from .measures import blob_centre as blob_centre
 from .measures import blob_data as blob_data
 from .measures import blob_sigma as blob_sigma
 from .measures import measure as measure
-from .perturb import LABEL_KINDS as LABEL_KINDS
-from .perturb import dilate_erode as dilate_erode
-from .perturb import jitter_electrodes as jitter_electrodes
-from .perturb import perturb_labels as perturb_labels
-from .perturb import scale_thickness as scale_thickness
-from .perturb import skull_close as skull_close
-from .perturb import skull_hole as skull_hole
 from .morph import Interface as Interface
 from .morph import Morph as Morph
 from .morph import MorphError as MorphError
@@ -44,5 +37,12 @@ from .morph import interface_surfaces as interface_surfaces
 from .morph import laplacian as laplacian
 from .morph import morph_nodes as morph_nodes
 from .morph import morph_quality as morph_quality
+from .perturb import LABEL_KINDS as LABEL_KINDS
+from .perturb import dilate_erode as dilate_erode
+from .perturb import jitter_electrodes as jitter_electrodes
+from .perturb import perturb_labels as perturb_labels
+from .perturb import scale_thickness as scale_thickness
+from .perturb import skull_close as skull_close
+from .perturb import skull_hole as skull_hole
 
 __all__ = sorted(n for n in dir() if not n.startswith("_") and n not in ("annotations",) and n not in ("grf", "morph", "measures", "first_order", "perturb", "config", "engine"))

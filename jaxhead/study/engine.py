@@ -19,7 +19,6 @@ keeps them (a per-process cache keyed by the reference folder).
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 import logging
 import math
@@ -29,7 +28,10 @@ import time
 import traceback
 from pathlib import Path
 
+import meshio
 import numpy as np
+from distributed import Client, LocalCluster, as_completed
+from tqdm import tqdm
 
 from ..electrodes import Electrodes, place_electrodes
 from ..fem import build_forward_model, simulate
@@ -46,9 +48,16 @@ from .first_order import (
     fit_map,
     node_gradients,
 )
-from .measures import MEASURE_COLUMNS, MeasureConfig, Reference, blob_data, blob_sigma, measure
-from .morph import MorphError, build_morph, morph_nodes, morph_quality
 from .grf import sample_grf
+from .measures import (
+    MEASURE_COLUMNS,
+    MeasureConfig,
+    Reference,
+    blob_data,
+    blob_sigma,
+    measure,
+)
+from .morph import MorphError, build_morph, morph_nodes, morph_quality
 from .perturb import jitter_electrodes, perturb_labels
 
 logger = logging.getLogger(__name__)
@@ -211,7 +220,6 @@ def _write_map(out: Path, name: str, points, faces, values) -> dict:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import meshio
 
     vtu = out / f"sensitivity_{name}.vtu"
     with atomic_write_path(vtu) as tmp:
@@ -346,8 +354,6 @@ def connect(workers: int | None = None, scheduler: str | None = None, *, timeout
     Returns:
         (client, cluster or None): close both when done.
     """
-    from distributed import Client, LocalCluster
-
     if scheduler is not None:
         try:
             return Client(scheduler, timeout=f"{timeout_s}s"), None
@@ -410,8 +416,6 @@ def run_study(config, *, workers: int | None = None, scheduler: str | None = Non
                                  pure=False).result()
         fo_path = out / "first_order" / "first_order.json"
         need_fo = cfg.first_order and any(p.kind == "grf" for p in cfg.perturbations)
-        from distributed import as_completed
-
         morph_todo = [s for s in todo if s["route"] == "morph"]
         other = [s for s in todo if s["route"] != "morph"]
         futures = [client.submit(run_sample, s, cfgd, ref_path, str(out), pure=False)
@@ -462,8 +466,6 @@ def _bar(progress, total, initial):
         progress = sys.stderr.isatty()
     if not progress:
         return None
-    from tqdm import tqdm
-
     return tqdm(total=total, initial=initial, desc="samples", unit="sample")
 
 

@@ -26,7 +26,6 @@ import numpy as np
 
 from ..fem import ForwardModel, jacobian, simulate
 from ..tissue import Tissue
-from .grf import grf_covariance
 from .morph import Morph, extension_transpose
 
 
