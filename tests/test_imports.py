@@ -26,6 +26,7 @@ FLOORS = [
     {"electrodes", "protocol"},
     {"fem"},
     {"inverse"},
+    {"study"},
     {"plot"},
     {"run"},
     {"cli", "__main__", "__init__"},

@@ -1,0 +1,257 @@
+"""The `[study]` section: reference head, perturbations with their sample counts, measures, seeds.
+
+One frozen dataclass per part (STYLE.md, Conventions 4); `load_study_config` reads TOML and
+rejects unknown keys with the closest valid one, and every value is checked when the dataclass is
+built, so bad input is one clear error before any work starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import hashlib
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from ..tissue import DEFAULT_SIGMA_S_M, TISSUE_NAMES, Tissue
+from .measures import MeasureConfig
+from .perturb import LABEL_KINDS
+
+#: Perturbation kinds, the routes that can realise them, and what `amplitude` means.
+KINDS: dict[str, tuple[tuple[str, ...], str]] = {
+    "grf": (("morph",), "sd in mm of a smooth random normal displacement of the interface"),
+    **{k: (("remesh",), v) for k, v in LABEL_KINDS.items()},
+    "electrode_position": (("electrodes",), "sd in mm of each electrode's tangential shift"),
+}
+ROUTES = ("morph", "remesh", "electrodes")
+_NEED_TISSUE = ("grf", "dilate", "erode")
+
+
+def _closest(name: str, valid) -> str:
+    m = difflib.get_close_matches(str(name), list(valid), n=1)
+    return f" (did you mean {m[0]!r}?)" if m else ""
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReferenceConfig:
+    """The unperturbed head.
+
+    Arguments:
+        source: "phantom" (a synthetic head, `jaxhead.make_head`), "labels" (a label map file,
+            meshed by the library) or "mesh" (a mesh file, `jaxhead.load_mesh`; no label map, so
+            only the morph and electrode routes).
+        modality, seed: the phantom's modality and subject seed.
+        voxel_mm: phantom voxel size (or the size a loaded label map is resampled to; None keeps).
+        labels_path: with source = "labels", a NIfTI label map (0..4).
+        n_elec, electrode_radius_mm, contact_impedance_ohm_m2: electrodes spread over the head.
+        protocol: "adjacent" or "opposite"; current_a: injected current (A).
+        sigma_s_m: conductivity per tissue (S/m), missing keys take the defaults.
+        stiffening: the morph's Jacobian-based stiffening exponent (`build_morph`).
+    """
+
+    source: Literal["phantom", "labels", "mesh"] = "phantom"
+    modality: Literal["mri", "ct"] = "mri"
+    seed: int = 0
+    voxel_mm: float | None = 4.0
+    labels_path: str | None = None
+    mesh_path: str | None = None
+    n_elec: int = 16
+    electrode_radius_mm: float = 6.0
+    contact_impedance_ohm_m2: float = 0.02
+    protocol: Literal["adjacent", "opposite"] = "adjacent"
+    current_a: float = 1e-4
+    sigma_s_m: dict = field(default_factory=dict)
+    stiffening: float = 1.0
+
+    def __post_init__(self):
+        if self.source not in ("phantom", "labels", "mesh"):
+            raise ValueError(f"[study.reference] source = {self.source!r}; use 'phantom', "
+                             "'labels' or 'mesh'.")
+        if self.source == "mesh" and not self.mesh_path:
+            raise ValueError('[study.reference] source = "mesh" needs mesh_path = "head.vtu".')
+        if self.source == "labels" and not self.labels_path:
+            raise ValueError('[study.reference] source = "labels" needs labels_path = "labels.nii.gz".')
+        if self.modality not in ("mri", "ct"):
+            raise ValueError(f"[study.reference] modality = {self.modality!r}; use 'mri' or 'ct'.")
+        if self.voxel_mm is not None and not self.voxel_mm > 0:
+            raise ValueError(f"[study.reference] voxel_mm = {self.voxel_mm}; it must be > 0.")
+        if int(self.n_elec) < 4:
+            raise ValueError(f"[study.reference] n_elec = {self.n_elec}; use at least 4.")
+        for name in ("electrode_radius_mm", "contact_impedance_ohm_m2", "current_a"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"[study.reference] {name} = {getattr(self, name)}; it must be > 0.")
+        if self.protocol not in ("adjacent", "opposite"):
+            raise ValueError(f"[study.reference] protocol = {self.protocol!r}; use 'adjacent' or 'opposite'.")
+        for k, v in self.sigma_s_m.items():
+            if k not in TISSUE_NAMES:
+                raise ValueError(f"[study.reference] sigma_s_m has unknown tissue {k!r}"
+                                 f"{_closest(k, TISSUE_NAMES)}; use {list(TISSUE_NAMES)}.")
+            if not float(v) > 0:
+                raise ValueError(f"[study.reference] sigma_s_m.{k} = {v}; conductivities are > 0 S/m.")
+
+    def sigma(self) -> np.ndarray:
+        """(4,) conductivities in S/m (BRAIN, CSF, SKULL, SCALP)."""
+        d = {**dict(zip(TISSUE_NAMES, DEFAULT_SIGMA_S_M)), **self.sigma_s_m}
+        return np.array([float(d[t]) for t in TISSUE_NAMES])
+
+
+@dataclass(frozen=True, kw_only=True)
+class PerturbationConfig:
+    """One perturbation model and how many samples of it.
+
+    Arguments:
+        kind: one of `KINDS` ("grf", "dilate", "erode", "skull_scale", "csf_scale", "skull_hole",
+            "skull_close", "electrode_position").
+        tissue: the interface or tissue ("brain", "csf", "skull", "scalp") for grf/dilate/erode.
+        amplitude: the kind's amplitude (`KINDS` gives its meaning and unit), >= 0.
+        correlation_mm: the grf's correlation length in mm.
+        samples: number of samples (seeds derived from the study's seed).
+        route: "morph", "remesh" or "electrodes"; default the kind's only route.
+    """
+
+    kind: str
+    amplitude: float
+    tissue: str | None = None
+    correlation_mm: float = 20.0
+    samples: int = 1
+    route: str | None = None
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"[[study.perturbations]] unknown kind {self.kind!r}"
+                             f"{_closest(self.kind, KINDS)}; use one of {sorted(KINDS)}.")
+        routes, meaning = KINDS[self.kind]
+        if self.kind in _NEED_TISSUE:
+            if self.tissue is None:
+                raise ValueError(f"[[study.perturbations]] kind {self.kind!r} needs tissue = "
+                                 "'brain', 'csf', 'skull' or 'scalp'.")
+        if self.tissue is not None:
+            t = Tissue.parse(self.tissue) if self.tissue in TISSUE_NAMES or isinstance(
+                self.tissue, int) else None
+            if t is None or int(t) < 1:
+                raise ValueError(f"[[study.perturbations]] unknown tissue {self.tissue!r}"
+                                 f"{_closest(self.tissue, TISSUE_NAMES)}; use one of "
+                                 f"{list(TISSUE_NAMES)}.")
+        try:
+            a = float(self.amplitude)
+        except (TypeError, ValueError):
+            raise ValueError(f"[[study.perturbations]] amplitude = {self.amplitude!r} is not a "
+                             f"number; for {self.kind!r} it is the {meaning}.") from None
+        if not np.isfinite(a) or a < 0:
+            raise ValueError(f"[[study.perturbations]] amplitude = {self.amplitude} for kind "
+                             f"{self.kind!r}; it must be >= 0 (the {meaning}).")
+        if self.kind in ("dilate", "erode") and (a != int(a) or a < 1):
+            raise ValueError(f"[[study.perturbations]] {self.kind} amplitude = {self.amplitude}; "
+                             "it is a whole number of voxels >= 1.")
+        if self.kind in ("skull_scale",) and a == 0:
+            raise ValueError("[[study.perturbations]] skull_scale amplitude = 0 removes the skull; "
+                             "use a factor > 0.")
+        if not self.correlation_mm > 0:
+            raise ValueError(f"[[study.perturbations]] correlation_mm = {self.correlation_mm}; it "
+                             "must be > 0 mm.")
+        if int(self.samples) != self.samples or self.samples < 1:
+            raise ValueError(f"[[study.perturbations]] samples = {self.samples}; use a whole number >= 1.")
+        if self.route is not None and self.route not in routes:
+            hint = (f"unknown route{_closest(self.route, ROUTES)}" if self.route not in ROUTES
+                    else f"{self.kind!r} is realised by {list(routes)} only")
+            raise ValueError(f"[[study.perturbations]] route = {self.route!r}: {hint}.")
+
+    @property
+    def realised_by(self) -> str:
+        return self.route or KINDS[self.kind][0][0]
+
+
+@dataclass(frozen=True, kw_only=True)
+class StudyConfig:
+    """A segmentation-error study.
+
+    Arguments:
+        name: the study's name; out_dir: outputs go to `<out_dir>/study/`.
+        seed: master seed; sample k of perturbation j gets a seed derived from (seed, j, k).
+        reference: ReferenceConfig; measures: `jaxhead.study.MeasureConfig`.
+        perturbations: the perturbation models (at least one).
+        first_order: compute the first-order counterpart of every grf perturbation.
+        retry_failed: on a rerun, run failed samples again (default: they count as finished).
+    """
+
+    name: str = "study"
+    out_dir: str = "runs/study"
+    seed: int = 0
+    reference: ReferenceConfig = field(default_factory=ReferenceConfig)
+    measures: MeasureConfig = field(default_factory=MeasureConfig)
+    perturbations: tuple[PerturbationConfig, ...] = ()
+    first_order: bool = True
+    retry_failed: bool = False
+
+    def __post_init__(self):
+        if self.reference.source == "mesh":
+            bad = [p.kind for p in self.perturbations if p.realised_by == "remesh"]
+            if bad:
+                raise ValueError(f"[[study.perturbations]] {sorted(set(bad))} perturb a label map "
+                                 "(the re-mesh route) but [study.reference] source = \"mesh\" has "
+                                 "none; use source = \"phantom\" or \"labels\", or grf / "
+                                 "electrode_position perturbations.")
+        if not self.perturbations:
+            raise ValueError("[study] has no [[study.perturbations]]; add at least one, e.g. "
+                             'kind = "grf", tissue = "csf", amplitude = 0.5, samples = 10.')
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def reference_key(self) -> str:
+        """A hash of what the reference head depends on (a rerun must use the same)."""
+        s = json.dumps(dataclasses.asdict(self.reference), sort_keys=True)
+        return hashlib.sha256(s.encode()).hexdigest()[:16]
+
+
+def _build(cls, data: dict, where: str):
+    if not isinstance(data, dict):
+        raise ValueError(f"{where} must be a table, got {type(data).__name__}.")
+    names = {f.name for f in dataclasses.fields(cls)}
+    for k in data:
+        if k not in names:
+            raise ValueError(f"{where} has unknown key {k!r}{_closest(k, names)}; valid keys: "
+                             f"{sorted(names)}.")
+    kw = dict(data)
+    if "blob_centre_mm" in kw and kw["blob_centre_mm"] is not None:
+        kw["blob_centre_mm"] = tuple(float(x) for x in kw["blob_centre_mm"])
+    return cls(**kw)
+
+
+def study_config_from_dict(d: dict) -> StudyConfig:
+    """A StudyConfig from the `[study]` table's dict (as TOML parses it)."""
+    d = dict(d)
+    top = {f.name for f in dataclasses.fields(StudyConfig)}
+    for k in d:
+        if k not in top:
+            raise ValueError(f"[study] has unknown key {k!r}{_closest(k, top)}; valid keys: "
+                             f"{sorted(top)}.")
+    if "reference" in d:
+        d["reference"] = _build(ReferenceConfig, d["reference"], "[study.reference]")
+    if "measures" in d:
+        d["measures"] = _build(MeasureConfig, d["measures"], "[study.measures]")
+    d["perturbations"] = tuple(_build(PerturbationConfig, p, "[[study.perturbations]]")
+                               for p in d.get("perturbations", ()))
+    return StudyConfig(**d)
+
+
+def load_study_config(path) -> StudyConfig:
+    """Read a TOML file with a `[study]` section into a StudyConfig (unknown keys are errors)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"study config {str(p)!r} does not exist; pass a TOML file such as "
+                         "configs/study_quick.toml.")
+    with open(p, "rb") as f:
+        data = tomllib.load(f)
+    if "study" not in data:
+        raise ValueError(f"{p} has no [study] section (top-level keys: {sorted(data)}).")
+    other = set(data) - {"study"}
+    if other:
+        raise ValueError(f"{p} has top-level keys {sorted(other)} besides [study]; a study config "
+                         "holds only the [study] section.")
+    return study_config_from_dict(data["study"])

@@ -1,0 +1,136 @@
+"""The differentiable counterpart of the sampled study: voltage sensitivity to the normal
+displacement of each interface vertex, and first-order propagation of a GRF prior.  [jax + host]
+
+With V(x) the voltages at node positions x and x(d) the morph (`jaxhead.study.morph`), the
+sensitivity to interface t's normal displacement at vertex v is
+
+    S_t[r, v] = sum_j dV_r / dx_j . dx_j / dd_v,
+
+dx_j/dd_v = n_v on the vertex itself and E n_v (the harmonic extension) inside. dV/dx comes
+from reverse-mode AD of `simulate` (one adjoint solve per row), then the chain through the
+extension is one multi-right-hand-side solve with K_II on the host (E^T = -K_IB^T K_II^-1).
+
+First order (delta method): dV ~ S_t d with d ~ GP(0, C), so Cov(dV) = S_t C S_t^T; the fitted
+conductivities of the reference model, linearised at the truth, move by A dV with
+A = (J^T W J)^-1 J^T W (J the (n_rows, 4) tissue Jacobian, W = diag(1 / noise_sd^2)), so
+Cov(sigma_hat) = A Cov(dV) A^T. A zero-mean prior gives zero first-order bias; the bias of
+a sampled study is then second order (it is what the sampled route measures).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..fem import ForwardModel, jacobian, simulate
+from ..tissue import Tissue
+from .morph import Morph, extension_transpose
+
+
+def node_gradients(model: ForwardModel, sigma, protocol, *, chunk_rows: int = 32) -> np.ndarray:
+    """dV/dx at the model's nodes by reverse-mode AD: (n_rows, n_nodes, 3) in V/mm.
+
+    Arguments:
+        model: the reference ForwardModel; sigma: (4,) or (n_tets,) S/m; protocol: its Protocol.
+        chunk_rows: rows whose vector-Jacobian products are vmapped together (memory).
+    """
+    x0 = jnp.asarray(model.nodes)
+    f = lambda m, x: simulate(m, sigma, protocol, nodes=x)  # noqa: E731
+    _, vjp = eqx.filter_jit(lambda m, x: jax.vjp(lambda y: f(m, y), x))(model, x0)
+    n_rows = protocol.n_rows
+    pull = eqx.filter_jit(jax.vmap(lambda ct: vjp(ct)[0]))
+    out = np.empty((n_rows, model.n_nodes, 3))
+    eye = np.eye(n_rows)
+    for s in range(0, n_rows, chunk_rows):
+        out[s:s + chunk_rows] = np.asarray(pull(jnp.asarray(eye[s:s + chunk_rows])))
+    return out
+
+
+def displacement_sensitivity(model: ForwardModel, morph: Morph, sigma, protocol, *,
+                             tissues=None, node_grad=None) -> dict[Tissue, np.ndarray]:
+    """Sensitivity of the voltages to the outward normal displacement of each interface vertex.
+
+    Arguments:
+        model: the reference ForwardModel (its nodes are the morph's reference nodes).
+        morph: `build_morph(mesh)` of the same mesh.
+        sigma: (4,) S/m; protocol: the Protocol.
+        tissues: interfaces to compute (default all of the morph's).
+        node_grad: optional precomputed `node_gradients(model, sigma, protocol)`.
+
+    Returns:
+        {Tissue: (n_rows, n_vertices) dV/dd in V/mm}.
+    """
+    if not np.array_equal(np.asarray(model.nodes), morph.nodes):
+        raise ValueError("`model` and `morph` were built from different meshes; build both from "
+                         "the reference TetMesh.")
+    G = node_gradients(model, sigma, protocol) if node_grad is None else np.asarray(node_grad)
+    n_rows = G.shape[0]
+    # total derivative w.r.t. the interface nodes' positions: direct + through the extension
+    gi = G[:, morph.free, :].transpose(1, 0, 2).reshape(len(morph.free), -1)
+    gb = G[:, morph.fixed, :] + extension_transpose(morph, gi).reshape(
+        len(morph.fixed), n_rows, 3).transpose(1, 0, 2)
+    pos = np.full(morph.nodes.shape[0], -1, np.int64)
+    pos[morph.fixed] = np.arange(morph.fixed.size)
+    keys = morph.interfaces if tissues is None else [Tissue.parse(t) for t in tissues]
+    out = {}
+    for t in keys:
+        s = morph.interface(t)
+        out[Tissue.parse(t)] = np.einsum("rvk,vk->rv", gb[:, pos[s.vertices], :], s.normals)
+    return out
+
+
+def voltage_covariance(S: np.ndarray, points, sd_mm: float, correlation_mm: float, *,
+                       block: int = 2048) -> np.ndarray:
+    """First-order Cov(dV) = S C S^T for a squared-exponential GRF prior, (n_rows, n_rows) V^2.
+
+    Arguments:
+        S: (n_rows, n_v) sensitivity of one interface (V/mm); points: (n_v, 3) its vertices (mm).
+        sd_mm, correlation_mm: the prior (as `sample_grf`).
+        block: rows of C formed at a time (memory block x n_v).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    S = np.asarray(S, dtype=np.float64)
+    if S.shape[1] != p.shape[0]:
+        raise ValueError(f"`S` has {S.shape[1]} columns but there are {p.shape[0]} points.")
+    out = np.zeros((S.shape[0], S.shape[0]))
+    for i in range(0, p.shape[0], block):
+        sq_i = np.sum(p[i:i + block] ** 2, 1)
+        d2 = np.maximum(sq_i[:, None] + np.sum(p * p, 1)[None, :] - 2 * p[i:i + block] @ p.T, 0)
+        C = sd_mm**2 * np.exp(-d2 / (2 * correlation_mm**2))
+        out += S[:, i:i + block] @ (C @ S.T)
+    return out
+
+
+def fit_map(model: ForwardModel, sigma, protocol, noise_sd) -> np.ndarray:
+    """Linearised weighted least-squares map A (4, n_rows): d sigma_hat = A dV (S/m per V)."""
+    J = np.asarray(jacobian(model, np.asarray(sigma, np.float64), protocol, per="tissue"))
+    W = 1.0 / np.asarray(noise_sd) ** 2
+    JtW = J.T * W
+    return np.linalg.solve(JtW @ J, JtW)
+
+
+def first_order_summary(S: np.ndarray, points, sd_mm: float, correlation_mm: float, volts,
+                        noise_sd, A=None, sigma=None) -> dict:
+    """First-order predictions of a GRF study of one interface.
+
+    Returns a dict: rms_rel_voltage_change (sqrt(trace Cov) / ||V||, the RMS of the sampled
+    rel_voltage_change to first order), rms_change_over_noise (sqrt(mean diag(Cov) / noise^2)),
+    and, with A and sigma, sigma_sd_percent_<tissue> (first-order sd of the fitted
+    conductivities in % of the truth).
+    """
+    cov = voltage_covariance(S, points, sd_mm, correlation_mm)
+    v = np.asarray(volts)
+    out = {"rms_rel_voltage_change": float(np.sqrt(np.trace(cov)) / np.linalg.norm(v)),
+           "rms_change_over_noise": float(np.sqrt(np.mean(np.diag(cov) / np.asarray(noise_sd) ** 2)))}
+    if A is not None:
+        cs = A @ cov @ A.T
+        for i, t in enumerate(("brain", "csf", "skull", "scalp")):
+            out[f"sigma_sd_percent_{t}"] = float(100 * np.sqrt(max(cs[i, i], 0)) / sigma[i])
+    return out
+
+
+def linear_prediction(S: np.ndarray, d) -> np.ndarray:
+    """First-order voltage change S d (n_rows,) of a displacement d (n_v,) mm."""
+    return np.asarray(S) @ np.asarray(d)

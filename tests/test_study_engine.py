@@ -1,0 +1,168 @@
+"""The study engine end to end on a small sphere mesh (2 worker processes), reruns, bad input."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from sphere_mesh import structured_sphere_mesh
+
+from jaxhead.io import save_mesh
+from jaxhead.study import (
+    COLUMNS,
+    expand_samples,
+    load_study_config,
+    run_study,
+    study_config_from_dict,
+)
+
+TOML = """
+[study]
+name = "sphere"
+out_dir = "{out}"
+seed = 3
+
+[study.reference]
+source = "mesh"
+mesh_path = "{mesh}"
+n_elec = 8
+electrode_radius_mm = 12.0
+current_a = 1e-3
+
+[study.measures]
+cell_mm = 20.0
+
+[[study.perturbations]]
+kind = "grf"
+tissue = "csf"
+amplitude = 0.3
+correlation_mm = 30.0
+samples = 2
+
+[[study.perturbations]]
+kind = "grf"
+tissue = "brain"
+amplitude = 6.0      # more than the 4 mm CSF: inverts tets, a recorded failure
+correlation_mm = 40.0
+samples = 1
+
+[[study.perturbations]]
+kind = "electrode_position"
+amplitude = 2.0
+samples = 1
+"""
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("study")
+    mesh = structured_sphere_mesh(h_mm=16.0)
+    save_mesh(mesh, tmp / "sphere.vtu")
+    cfg = tmp / "study.toml"
+    cfg.write_text(TOML.format(out=tmp / "run", mesh=tmp / "sphere.vtu"))
+    out = run_study(cfg, workers=2, progress=False)
+    return cfg, out
+
+
+def read(out):
+    with open(out / "samples.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def test_outputs(study):
+    cfg, out = study
+    rows = read(study[1])
+    assert len(rows) == 4 and list(rows[0]) == list(COLUMNS)
+    grf = [r for r in rows if r["perturbation"] == "grf" and r["tissue"] == "csf"]
+    assert all(not r["error"] for r in grf), grf
+    for r in grf:
+        assert float(r["rel_voltage_change"]) > 0 and r["route"] == "morph"
+        # at sd 0.3 mm the first-order prediction is within 10 % per sample
+        assert float(r["linearisation_error"]) < 0.10
+        assert np.isfinite(float(r["sigma_bias_percent_skull"]))
+    bad = [r for r in rows if r["tissue"] == "brain"][0]
+    assert bad["error"].startswith("MorphError") and int(bad["n_inverted"]) > 0
+    el = [r for r in rows if r["perturbation"] == "electrode_position"][0]
+    assert not el["error"] and float(el["rel_voltage_change"]) > 0
+    s = json.loads((out / "summary.json").read_text())
+    g = [g for g in s["groups"] if g["tissue"] == "csf"][0]
+    assert g["first_order"]["agree_within_10_percent"] is True
+    assert g["n"] == 2 and g["n_failed"] == 0
+    assert (out / "first_order" / "sensitivity_csf.vtu").is_file()
+    assert (out / "first_order" / "sensitivity_csf.png").is_file()
+    assert (out / "distributions.png").is_file()
+
+
+def test_rerun_runs_only_missing_samples(study):
+    cfg, out = study
+    before = read(out)
+    victim = sorted((out / "samples").glob("*.json"))[0]
+    victim.unlink()
+    run_study(cfg, workers=1, progress=False)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["run"]["ran"] == 1 and s["run"]["skipped_finished"] == 3
+    after = read(out)
+    for a, b in zip(before, after):  # seeded: the rerun sample is the same sample
+        assert a["rel_voltage_change"] == pytest.approx(b["rel_voltage_change"]) or a["error"]
+
+
+def base(**pert):
+    return {"reference": {"source": "mesh", "mesh_path": "x.vtu"},
+            "perturbations": [{"kind": "grf", "tissue": "csf", "amplitude": 0.5, **pert}]}
+
+
+@pytest.mark.parametrize("pert, match", [
+    ({"kind": "gfr"}, "unknown kind 'gfr'.*did you mean 'grf'"),
+    ({"tissue": "bone"}, "unknown tissue 'bone'"),
+    ({"amplitude": -0.5}, "amplitude = -0.5.*>= 0"),
+    ({"route": "remesh"}, "realised by \\['morph'\\]"),
+    ({"samples": 0}, "samples = 0"),
+])
+def test_bad_perturbations_are_one_clear_error(pert, match):
+    with pytest.raises(ValueError, match=match):
+        study_config_from_dict(base(**pert))
+
+
+def test_unknown_keys_and_remesh_without_labels(tmp_path):
+    with pytest.raises(ValueError, match="unknown key 'sampels'.*did you mean 'samples'"):
+        study_config_from_dict({"perturbations": [{"kind": "grf", "tissue": "csf",
+                                                   "amplitude": 1, "sampels": 2}]})
+    d = base()
+    d["perturbations"].append({"kind": "dilate", "tissue": "csf", "amplitude": 1})
+    with pytest.raises(ValueError, match="re-mesh route"):
+        study_config_from_dict(d)
+    p = tmp_path / "x.toml"
+    p.write_text("[studdy]\n")
+    with pytest.raises(ValueError, match="no \\[study\\] section"):
+        load_study_config(p)
+
+
+def test_unreachable_scheduler_fails_before_any_work(tmp_path):
+    d = base()
+    d["out_dir"] = str(tmp_path / "run")
+    cfg = study_config_from_dict(d)
+    with pytest.raises(ValueError, match="cannot reach the Dask scheduler"):
+        run_study(cfg, scheduler="tcp://127.0.0.1:9", progress=False)
+    assert not (tmp_path / "run" / "study" / "samples").exists()
+
+
+def test_sample_seeds_are_distinct_and_stable():
+    cfg = study_config_from_dict({"seed": 1, "perturbations": [
+        {"kind": "grf", "tissue": "csf", "amplitude": 0.5, "samples": 3},
+        {"kind": "dilate", "tissue": "skull", "amplitude": 1, "samples": 2}]})
+    a, b = expand_samples(cfg), expand_samples(cfg)
+    assert a == b and len({s["seed"] for s in a}) == 5
+    assert [s["route"] for s in a] == ["morph"] * 3 + ["remesh"] * 2
+
+
+def test_shipped_configs_load():
+    import pathlib
+
+    root = pathlib.Path(__file__).parent.parent / "configs"
+    quick = load_study_config(root / "study_quick.toml")
+    kinds = {p.kind for p in quick.perturbations}
+    routes = {p.realised_by for p in quick.perturbations}
+    assert len(expand_samples(quick)) == 4 and len(kinds) == 2 and routes == {"morph", "remesh"}
+    assert quick.reference.voxel_mm == 4.0
+    full = load_study_config(root / "segmentation_sensitivity.toml")
+    assert {p.realised_by for p in full.perturbations} == {"morph", "remesh", "electrodes"}

@@ -1,0 +1,121 @@
+"""First-order counterpart: host chain vs JAX AD vs FD; covariance vs a dense product; the
+linearisation error falls as the amplitude squared; measures' invariants on a small sphere."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_fem_assembly import small_model
+
+from jaxhead.fem import build_forward_model, simulate
+from jaxhead.protocol import adjacent
+from jaxhead.study import (
+    MeasureConfig,
+    Reference,
+    blob_data,
+    build_morph,
+    displacement_sensitivity,
+    grf_covariance,
+    measure,
+    morph_nodes,
+    sample_grf,
+    voltage_covariance,
+)
+from jaxhead.tissue import Tissue
+
+SIGMA = np.array([0.3, 1.79, 0.018, 0.44])
+
+
+@pytest.fixture(scope="module")
+def setup():
+    mesh, elec = small_model(h_mm=24.0, n_elec=6)
+    model = build_forward_model(mesh, elec)
+    protocol = adjacent(6, current_a=1e-3)
+    morph = build_morph(mesh)
+    S = displacement_sensitivity(model, morph, SIGMA, protocol)
+    return mesh, model, protocol, morph, S
+
+
+def test_sensitivity_matches_ad_through_the_morph_and_fd(setup):
+    mesh, model, protocol, morph, S = setup
+    assert set(S) == {Tissue.BRAIN, Tissue.CSF, Tissue.SKULL, Tissue.SCALP}
+    s = morph.interface("skull")
+    f = eqx.filter_jit(lambda m, d: simulate(m, SIGMA, protocol,
+                                             nodes=morph_nodes(morph, {"skull": d})))
+    d0 = jnp.zeros(s.n_vertices)
+    Jad = np.asarray(jax.jacrev(lambda d: f(model, d))(d0))
+    np.testing.assert_allclose(S[Tissue.SKULL], Jad, rtol=0, atol=1e-9 * np.abs(Jad).max())
+    e = np.random.default_rng(0).standard_normal(s.n_vertices)
+    h = 1e-4
+    fd = (np.asarray(f(model, h * e)) - np.asarray(f(model, -h * e))) / (2 * h)
+    np.testing.assert_allclose(S[Tissue.SKULL] @ e, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
+
+
+def test_voltage_covariance_equals_dense_product(setup):
+    mesh, model, protocol, morph, S = setup
+    s = morph.interface("csf")
+    p = s.points(mesh.nodes)
+    C = grf_covariance(p, 0.5, 15.0)
+    dense = S[Tissue.CSF] @ C @ S[Tissue.CSF].T
+    np.testing.assert_allclose(voltage_covariance(S[Tissue.CSF], p, 0.5, 15.0, block=7), dense,
+                               rtol=1e-10, atol=1e-14 * np.abs(dense).max())
+
+
+def test_linearisation_error_is_second_order(setup):
+    """||V(d) - V(0) - S d|| / ||S d|| ~ c sd: halving the amplitude halves the relative error."""
+    mesh, model, protocol, morph, S = setup
+    s = morph.interface("csf")
+    z = sample_grf(s.points(mesh.nodes), 1.0, 25.0, seed=4)[0]
+    f = eqx.filter_jit(lambda m, x: simulate(m, SIGMA, protocol, nodes=x))
+    v0 = np.asarray(f(model, jnp.asarray(mesh.nodes)))
+    amps = np.array([0.4, 0.2, 0.1])
+    err = []
+    for a in amps:
+        dv = np.asarray(f(model, morph_nodes(morph, {"csf": a * z}))) - v0
+        lin = S[Tissue.CSF] @ (a * z)
+        err.append(np.linalg.norm(dv - lin) / np.linalg.norm(lin))
+    slope = np.polyfit(np.log(amps), np.log(err), 1)[0]
+    assert slope == pytest.approx(1.0, abs=0.15)
+
+
+@pytest.fixture(scope="module")
+def reference(setup):
+    mesh, model, protocol, morph, S = setup
+    return Reference(mesh, model, protocol, SIGMA, MeasureConfig(cell_mm=20.0))
+
+
+def test_measures_of_the_reference_itself(reference):
+    ref = reference
+    blob = blob_data(ref.mesh, ref.model, ref.sigma, ref.protocol, ref.centre_mm, ref.cfg)
+    m = measure(ref, ref.volts, blob)
+    assert m["rel_voltage_change"] == 0 and m["voltage_change_over_noise"] == 0
+    assert m["image_correlation"] == pytest.approx(1.0, abs=1e-12)
+    assert m["localisation_error_mm"] == pytest.approx(ref.metrics.localisation_error_mm)
+    for t in ("brain", "csf", "skull", "scalp"):
+        assert abs(m[f"sigma_bias_percent_{t}"]) < 1e-3
+        assert m[f"sigma_covered_{t}"] == 1.0
+
+
+def test_change_over_noise_is_in_noise_units(reference):
+    ref = reference
+    light = Reference(ref.mesh, ref.model, ref.protocol, ref.sigma,
+                      MeasureConfig(imaging=False, fit=False))
+    m = measure(light, light.volts + 2.0 * light.noise_sd)
+    assert m["voltage_change_over_noise"] == pytest.approx(2.0, rel=1e-12)
+    assert m["rel_voltage_change"] == pytest.approx(
+        2 * np.linalg.norm(light.noise_sd) / np.linalg.norm(light.volts), rel=1e-12)
+    assert np.isnan(m["image_correlation"]) and np.isnan(m["sigma_bias_percent_skull"])
+
+
+def test_fit_bias_of_a_scaled_skull_has_the_expected_sign(setup, reference):
+    """A thicker skull (outer skull interface moved out by 1 mm) looks like a more resistive
+    skull to the reference model: its fitted skull conductivity must come out lower."""
+    mesh, model, protocol, morph, S = setup
+    s = morph.interface("skull")
+    x = morph_nodes(morph, {"skull": np.full(s.n_vertices, 1.0)})
+    v = np.asarray(simulate(model, SIGMA, protocol, nodes=x))
+    m = measure(reference, v, blob_data(mesh, model, SIGMA, protocol, reference.centre_mm,
+                                        reference.cfg, nodes=x))
+    assert m["sigma_bias_percent_skull"] < 0
+    assert m["rel_voltage_change"] > 0
