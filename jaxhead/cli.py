@@ -11,6 +11,7 @@ from pathlib import Path
 from . import io
 from .phantom import make_head
 from .run import load_config, run_pipeline, write_report
+from .study import run_study
 
 
 def _setup_runtime() -> None:
@@ -41,6 +42,13 @@ def _cmd_report(args) -> int:
         raise FileNotFoundError(f"run folder {str(cfg.run_dir)!r} does not exist; run "
                                 f"`jaxhead run {args.config}` first.")
     print(f"wrote {write_report(cfg)}")
+    return 0
+
+
+def _cmd_study(args) -> int:
+    path = run_study(args.config, workers=args.workers, scheduler=args.scheduler,
+                     progress=False if args.no_progress else None)
+    print(f"study folder: {path}")
     return 0
 
 
@@ -83,6 +91,19 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("config", help="the run's TOML config")
     rp.add_argument("--out", help="run folder (overrides the config's out_dir)")
     rp.set_defaults(fn=_cmd_report)
+
+    st = sub.add_parser(
+        "study", help="segmentation-error study: perturbed heads as Dask tasks",
+        description="Run a [study] config: perturb the reference head N times (morph or re-mesh), "
+                    "measure voltages, images and fitted conductivities, and write "
+                    "<out_dir>/study/{samples.csv,summary.json,figures}. Reruns skip finished samples.")
+    st.add_argument("config", help="TOML file with a [study] section, e.g. configs/study_quick.toml")
+    st.add_argument("--workers", type=int, default=None,
+                    help="processes of the embedded Dask cluster (default: cores)")
+    st.add_argument("--scheduler", default=None,
+                    help="address of a running Dask scheduler (e.g. tcp://host:8786) instead")
+    st.add_argument("--no-progress", action="store_true", help="no progress bar")
+    st.set_defaults(fn=_cmd_study)
 
     ph = sub.add_parser("phantom", help="write a synthetic head scan and its labels as NIfTI")
     ph.add_argument("--modality", choices=["mri", "ct"], default="mri")

@@ -33,9 +33,10 @@ FLOORS = [
 ]
 FLOOR = {unit: i for i, units in enumerate(FLOORS) for unit in units}
 
-#: Third-party modules that may be imported inside a function: optional (pytetwild, pyvista) or
+#: Third-party modules that may be imported inside a function: optional (gmsh, tetgen: copyleft
+#: extras; pytetwild, pyvista) or
 #: heavy and only needed to draw (matplotlib); the CLI imports jax to set float64 at its entry.
-LOCAL_OK = ("matplotlib", "pyvista", "pytetwild", "jax")
+LOCAL_OK = ("matplotlib", "pyvista", "pytetwild", "gmsh", "tetgen", "jax")
 
 
 def _modules():

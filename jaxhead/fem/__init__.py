@@ -32,7 +32,6 @@ __all__ = [
     "build_forward_model",
     "jacobian",
     "jacobian_cells",
-    "jacobian_cells",
     "linear_solve",
     "pardiso_available",
     "potentials",

@@ -32,6 +32,8 @@ from scipy.spatial import cKDTree
 
 from ..tissue import TISSUES, Tissue
 from .improve import improve_mesh
+from .mesher_gmsh import mesh_gmsh
+from .mesher_tetgen import mesh_tetgen
 from .refine import refine_surface
 from .surface import Surface
 from .tetmesh import TetMesh, face_adjacency, orient_tets, signed_volumes
@@ -711,15 +713,11 @@ def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -
         t0 = time.perf_counter()
         h = [edges[t] for t in TISSUES]
         if mesher == "gmsh":
-            from .mesher_gmsh import mesh_gmsh
-
             nodes, tets, labels = mesh_gmsh(
                 surfs, h, refine_points_mm=points, refine_edge_mm=cfg.refine_edge_mm,
                 refine_radius_mm=cfg.refine_radius_mm, refine_grading=cfg.refine_grading,
                 threads=cfg.threads)
         else:
-            from .mesher_tetgen import mesh_tetgen
-
             nodes, tets, labels = mesh_tetgen(surfs, h, region_seeds(surfs))
         n_mesher = len(tets)
         tets, n_flipped = orient_tets(nodes, tets)

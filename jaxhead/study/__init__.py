@@ -8,7 +8,6 @@ from .config import StudyConfig as StudyConfig
 from .config import load_study_config as load_study_config
 from .config import study_config_from_dict as study_config_from_dict
 from .engine import COLUMNS as COLUMNS
-from .engine import build_parser_hook as build_parser_hook
 from .engine import connect as connect
 from .engine import expand_samples as expand_samples
 from .engine import run_study as run_study

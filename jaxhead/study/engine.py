@@ -561,28 +561,3 @@ def _figures(out: Path, rows: list[dict]):
     with atomic_write_path(out / "distributions.png") as tmp:
         fig.savefig(tmp, dpi=90)
     plt.close(fig)
-
-
-def build_parser_hook(subparsers):
-    """Add `jaxhead study CONFIG [--workers N] [--scheduler ADDRESS] [--no-progress]` to a CLI.
-
-    Returns the subparser; its `func(args)` calls `run_study` and prints the study folder.
-    """
-    p = subparsers.add_parser(
-        "study", help="segmentation-error study: perturbed heads as Dask tasks",
-        description="Run a [study] config: perturb the reference head N times (morph or "
-                    "re-mesh), measure voltages, images and fitted conductivities, and write "
-                    "<out_dir>/study/{samples.csv,summary.json,figures}. Reruns skip finished samples.")
-    p.add_argument("config", help="TOML file with a [study] section")
-    p.add_argument("--workers", type=int, default=None, help="embedded cluster processes (default: cores)")
-    p.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-    def func(args):
-        path = run_study(args.config, workers=args.workers, scheduler=args.scheduler,
-                         progress=False if args.no_progress else None)
-        print(path)
-        return 0
-
-    p.set_defaults(func=func)
-    return p
