@@ -165,8 +165,8 @@ def case_cut_face_and_side(vox):
 
 
 def case_anisotropic(vox):
-    """Thick slices: in-plane `vox`, 1.75 x `vox` between slices (and neck cut)."""
-    lab = _phantom((vox, vox, 1.75 * vox), seed=6)
+    """Thick slices: 0.75 x `vox` in plane, 1.4 x `vox` between slices (and a neck cut)."""
+    lab = _phantom((0.75 * vox, 0.75 * vox, 1.4 * vox), seed=6)
     z0, _ = _z_extent(lab, Tissue.SKULL)
     return _crop(lab, (slice(None), slice(None), slice(z0 + 1, None)))
 
