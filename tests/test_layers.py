@@ -267,17 +267,31 @@ def test_layer_on_border_names_tissue_and_pad():
     c = L.shape[0] // 2
     L[c, c, :5] = 4  # a "neck" of scalp from the head down to the border
     L[c, c, 0] = 3
-    with pytest.raises(ValueError, match=r"SKULL on z=0.*pad_labels"):
-        make_layers(LabelMap(L, aff))
+    # fov_cut="error" refuses it (the default, "close", closes it: tests/test_hard_labels.py)
+    with pytest.raises(ValueError, match=r"SKULL on z=0.*fov_cut='close'.*pad_labels"):
+        make_layers(LabelMap(L, aff), LayerConfig(fov_cut="error"))
     # padding fixes it
-    out = make_layers(pad_labels(LabelMap(L, aff), 2))
+    out = make_layers(pad_labels(LabelMap(L, aff), 2), LayerConfig(fov_cut="error"))
     assert_strictly_nested(out.labels)
+    # and so does the default: the cut is capped, reported, and the grid grows below z=0 only
+    out, rep = make_layers_reported(LabelMap(L, aff))
+    assert_strictly_nested(out.labels)
+    assert [c["face"] for c in rep.fov_cuts] == ["z=0"]
+    assert rep.fov_cuts[0]["tissues"] == {"skull": 1}
+    assert rep.padding[2][0] >= 2 and rep.padding[:2] == ((0, 0), (0, 0))
 
 
 def test_growth_into_border_is_an_error():
     L, aff, _ = spheres(n=34)  # scalp (48 mm = 16 voxels) ends one voxel from the border
     with pytest.raises(ValueError, match=r"pad_labels\(labels, \d+\)"):
-        make_layers(LabelMap(L, aff), LayerConfig(min_thickness_mm={"scalp": 12.0}))
+        make_layers(LabelMap(L, aff), LayerConfig(min_thickness_mm={"scalp": 12.0}, fov_cut="error"))
+    # fov_cut="close" grows the grid instead, keeping world positions
+    out, rep = make_layers_reported(LabelMap(L, aff), LayerConfig(min_thickness_mm={"scalp": 12.0}))
+    assert all(lo > 0 and hi > 0 for lo, hi in rep.padding) and rep.fov_cuts == ()
+    assert_strictly_nested(out.labels)
+    np.testing.assert_allclose(out.affine[:3, :3], aff[:3, :3])
+    lo = np.array([p[0] for p in rep.padding])
+    np.testing.assert_allclose(out.affine[:3, 3] + out.affine[:3, :3] @ lo, aff[:3, 3])
 
 
 def test_config_validation():

@@ -5,6 +5,13 @@ closing of each layer, a skull mask ``skull U brain U dilate_3x3x3(CSF)`` so a t
 the CSF everywhere, and the brain eroded by 2x2x2 where the CSF is too thin. :func:`make_layers`
 does the same as explicit 3D rules, in this order, and counts every relabelled voxel:
 
+0. ``fov``: a head cut by the volume border (a field of view ending at the neck, the vertex or
+   the face) is closed (``fov_cut="close"``, the default): the grid is padded beyond every cut
+   face, and each shell is capped there, inside out, by the voxels of the pad within its minimum
+   thickness of the inner solid (CSF over a cut brain, skull over CSF, scalp over skull), so
+   nesting and thickness hold across the cut. The cut faces, their tissue and what was added are
+   in :class:`LayerReport` (``fov_cuts``); the output grid is the input grid grown by the pad on
+   the cut sides. ``fov_cut="error"`` refuses such a map.
 1. ``closing``: per-layer morphological closing (3D ball of ``closing_radius_mm``, voxel-size
    aware) of each tissue mask of the input; where two closings claim a voxel the outer layer wins
    (BRAIN < CSF < SKULL < SCALP), so a CSF channel through the skull is sealed by skull (skull
@@ -16,6 +23,15 @@ does the same as explicit 3D rules, in this order, and counts every relabelled v
    head) takes label k, inside out.
 4. ``components``: each nested solid keeps only its largest face-connected component, outside in;
    dropped voxels take the label of the next solid out (background for the head).
+4b. ``tunnels``: each nested solid is made a topological ball (genus 0), outside in: a tunnel
+   through a solid (a channel of outer tissue through the skull, a bridge of scalp over a
+   groove) is a handle of its surface, which remeshing at edges wider than the tunnel collapses
+   into a self-intersecting knot. Tunnels are plugged with the smallest closing that removes
+   them: the voxels a closing of radius 1, 2, ... ``max_tunnel_voxels`` voxels adds to the solid
+   are split into connected pieces, and only pieces that raise the solid's Euler characteristic
+   (a plug, not a groove filler) are added, as the solid's own shell tissue. The rule runs again
+   after rule 6 (whose growth can bridge a groove), followed by rules 5 and 6; the genus of each
+   solid before and after is in the report.
 5. ``nesting``: strict nesting, the paper's 3x3x3 rule for every shell: no voxel of S_k has a
    26-neighbour outside S_(k+1). The CSF shell takes brain voxels (the paper's brain erosion); the
    skull and scalp shells grow outward (the paper's skull = skull U brain U dilate(CSF)). With it,
@@ -33,7 +49,7 @@ towards removing diagonal-only contacts and tunnels: both make non-manifold surf
 import logging
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -45,7 +61,8 @@ from ..volume import LabelMap
 log = logging.getLogger(__name__)
 
 #: The rules of :func:`make_layers`, in the order they run.
-RULES: tuple[str, ...] = ("closing", "ventricles", "holes", "components", "nesting", "thickness")
+RULES: tuple[str, ...] = ("fov", "closing", "ventricles", "holes", "components", "tunnels",
+                          "nesting", "thickness")
 
 _CROSS = ndi.generate_binary_structure(3, 1)  # 6-connectivity
 _CUBE = np.ones((3, 3, 3), dtype=bool)  # 26-neighbourhood (the paper's 3x3x3)
@@ -100,13 +117,30 @@ class LayerConfig:
             nesting rule already gives every shell at least one voxel.
         ventricles: "brain" relabels CSF enclosed by brain to BRAIN (the nested-surface mesh has
             one brain solid); "keep" keeps it as CSF (counted in the report).
+        fov_cut: "close" caps a head cut by the volume border (neck, vertex, face; any side) and
+            pads the grid there (rule ``fov``, reported); "error" raises ValueError instead.
+        tunnels: "plug" makes every nested solid genus 0 (rule ``tunnels``); "keep" leaves
+            tunnels (their surfaces may then self-intersect after remeshing).
+        max_tunnel_voxels: largest closing radius (in voxels) tried to plug a tunnel.
     """
 
     closing_radius_mm: float | dict[str, float] | None = None
     min_thickness_mm: float | dict[str, float] | None = None
     ventricles: Literal["brain", "keep"] = "brain"
+    fov_cut: Literal["close", "error"] = "close"
+    tunnels: Literal["plug", "keep"] = "plug"
+    max_tunnel_voxels: int = 4
 
     def __post_init__(self):
+        if self.fov_cut not in ("close", "error"):
+            raise ValueError(f"`fov_cut` = {self.fov_cut!r}; choose 'close' (cap the head at the "
+                             "volume border) or 'error'.")
+        if self.tunnels not in ("plug", "keep"):
+            raise ValueError(f"`tunnels` = {self.tunnels!r}; choose 'plug' or 'keep'.")
+        if (isinstance(self.max_tunnel_voxels, bool) or not isinstance(self.max_tunnel_voxels, int)
+                or not 1 <= self.max_tunnel_voxels <= 16):
+            raise ValueError(f"`max_tunnel_voxels` must be an integer in 1..16, got "
+                             f"{self.max_tunnel_voxels!r}.")
         if self.closing_radius_mm is not None:
             _per_tissue(self.closing_radius_mm, "closing_radius_mm")
         if self.min_thickness_mm is not None:
@@ -133,7 +167,7 @@ class LayerReport:
     """What :func:`make_layers` changed, rule by rule.
 
     Arguments:
-        shape: grid shape (x, y, z).
+        shape: the input grid's shape (x, y, z) (the output's is larger by `padding`).
         voxel_mm: voxel edge lengths in mm.
         changes: rule -> {(from Tissue, to Tissue): voxels relabelled}; the net change of the
             rule (label before the rule vs after it), so the numbers add up to real voxels.
@@ -142,6 +176,15 @@ class LayerReport:
         ventricles: the option used ("brain" or "keep").
         closing_radius_mm, min_thickness_mm: the effective settings (mm).
         volumes_before_mm3, volumes_after_mm3: tissue volumes before and after (mm^3).
+        fov_cuts: one dict per volume face the head was cut by (rule ``fov``): "face" ("z=0"),
+            "side" (its anatomical direction from the affine: "inferior" for a neck cut),
+            "tissue_voxels" and "tissues" (voxels on that face), "area_mm2", "pad_voxels" and
+            "pad_mm" (grid added beyond it).
+        padding: voxels added to the grid per side, ((x0, x1), (y0, y1), (z0, z1)); the output
+            grid is the input grid grown by it (affine shifted so world positions are kept).
+        tunnels_plugged: solid (its Tissue) -> pieces added to plug tunnels.
+        genus_before, genus_after: solid -> genus (handles) before rule ``tunnels`` and at the end,
+            from the Euler characteristic of the voxel solid (closed cubes).
     """
 
     shape: tuple[int, int, int]
@@ -154,6 +197,11 @@ class LayerReport:
     min_thickness_mm: Mapping[Tissue, float]
     volumes_before_mm3: Mapping[Tissue, float]
     volumes_after_mm3: Mapping[Tissue, float]
+    fov_cuts: tuple = ()
+    padding: tuple = ((0, 0), (0, 0), (0, 0))
+    tunnels_plugged: Mapping[Tissue, int] = field(default_factory=dict)
+    genus_before: Mapping[Tissue, int] = field(default_factory=dict)
+    genus_after: Mapping[Tissue, int] = field(default_factory=dict)
 
     def n_changed(self, rule: str | None = None, tissue: Tissue | str | int | None = None) -> int:
         """Voxels relabelled by `rule` (None: all rules), optionally only those to or from `tissue`."""
@@ -192,6 +240,11 @@ class LayerReport:
             "min_thickness_mm": {name(t): v for t, v in self.min_thickness_mm.items()},
             "volumes_before_mm3": {name(t): v for t, v in self.volumes_before_mm3.items()},
             "volumes_after_mm3": {name(t): v for t, v in self.volumes_after_mm3.items()},
+            "fov_cuts": [dict(c) for c in self.fov_cuts],
+            "padding": [list(p) for p in self.padding],
+            "tunnels_plugged": {name(t): int(n) for t, n in self.tunnels_plugged.items()},
+            "genus_before": {name(t): int(n) for t, n in self.genus_before.items()},
+            "genus_after": {name(t): int(n) for t, n in self.genus_after.items()},
         }
 
     def __str__(self) -> str:
@@ -210,6 +263,16 @@ class LayerReport:
             f"{t.name} {v:g}" for t, v in self.closing_radius_mm.items()))
         lines.append("  min thickness mm: " + ", ".join(
             f"{t.name} {v:g}" for t, v in self.min_thickness_mm.items()))
+        for c in self.fov_cuts:
+            lines.append(
+                f"  field-of-view cut at {c['face']} ({c['side']}): {c['tissue_voxels']} tissue voxels "
+                f"({', '.join(f'{k} {v}' for k, v in c['tissues'].items())}), "
+                f"{c['area_mm2']:.0f} mm^2; closed, grid padded {c['pad_voxels']} voxels "
+                f"({c['pad_mm']:g} mm)")
+        if any(self.tunnels_plugged.values()) or any(self.genus_after.values()):
+            lines.append("  tunnels plugged: " + ", ".join(
+                f"{t.name} {self.tunnels_plugged.get(t, 0)} (genus {self.genus_before.get(t, 0)} -> "
+                f"{self.genus_after.get(t, 0)})" for t in TISSUES))
         lines.append("  volume cm^3 before -> after: " + ", ".join(
             f"{t.name} {self.volumes_before_mm3[t] / 1e3:.1f} -> {self.volumes_after_mm3[t] / 1e3:.1f}"
             for t in TISSUES))
@@ -320,12 +383,14 @@ def _border_tissues(labels: np.ndarray) -> dict[Tissue, list[str]]:
     return found
 
 
-def check_labels(labels: LabelMap, name: str = "labels") -> None:
+def check_labels(labels: LabelMap, name: str = "labels", *, allow_border: bool = False) -> None:
     """Raise ValueError unless `labels` is a LabelMap with all four tissues, clear of the border.
 
     Arguments:
         labels: the label map to check.
         name: the argument name used in messages.
+        allow_border: accept tissue on the volume border (a field-of-view cut that
+            ``make_layers`` closes, ``LayerConfig.fov_cut="close"``).
     """
     if not isinstance(labels, LabelMap):
         raise ValueError(
@@ -347,12 +412,13 @@ def check_labels(labels: LabelMap, name: str = "labels") -> None:
         raise ValueError(
             f"`{name}` has no {', '.join(missing)} voxels; the nested head model needs all four "
             "tissues (BRAIN=1, CSF=2, SKULL=3, SCALP=4). Check the segmentation.")
-    border = _border_tissues(lab)
+    border = {} if allow_border else _border_tissues(lab)
     if border:
         where = "; ".join(f"{t.name} on {', '.join(faces)}" for t, faces in border.items())
         raise ValueError(
             f"`{name}` has tissue on the volume border ({where}): the layers would be cut open "
-            "there. Pad the volume with background first, e.g. "
+            "there. Let make_layers close the cut (LayerConfig(fov_cut='close'), the default), "
+            "or pad the volume with background first, e.g. "
             "`jaxhead.geometry.layers.pad_labels(labels, 4)` (or numpy.pad with 0 and a shifted "
             "affine).")
 
@@ -373,6 +439,107 @@ def pad_labels(labels: LabelMap, n_voxels: int | tuple[int, int, int]) -> LabelM
     shift[:3, 3] = -n
     padded = np.pad(labels.labels, [(int(k), int(k)) for k in n], constant_values=0)
     return LabelMap(padded, labels.affine @ shift)
+
+
+def _or_shifts(X: np.ndarray, axes: tuple[int, ...]) -> np.ndarray:
+    """OR of X over the 2^len(axes) unit shifts along `axes` (cells shared by adjacent voxels)."""
+    out = None
+    for bits in range(1 << len(axes)):
+        sl = [slice(None)] * 3
+        for j, ax in enumerate(axes):
+            sl[ax] = slice(1, None) if (bits >> j) & 1 else slice(None, -1)
+        part = X[tuple(sl)]
+        out = part if out is None else out | part
+    return out
+
+
+def euler_characteristic(mask: np.ndarray) -> int:
+    """Euler characteristic of the union of the closed unit cubes of `mask` (V - E + F - C).
+
+    For one solid without cavities it is 1 - genus (a ball: 1; a torus-like solid: 0). Closed
+    cubes make diagonal (edge or corner) contacts connections, so a diagonal-only bridge counts as
+    a handle: the conservative choice for surfaces, where such contacts pinch.
+
+    Arguments:
+        mask: (x, y, z) bool.
+    Returns:
+        The Euler characteristic (int).
+    """
+    X = np.pad(np.asarray(mask, dtype=bool), 1)
+    cubes = int(X.sum())
+    faces = sum(int(_or_shifts(X, (a,)).sum()) for a in range(3))
+    edges = sum(int(_or_shifts(X, (a, b)).sum()) for a, b in ((0, 1), (0, 2), (1, 2)))
+    verts = int(_or_shifts(X, (0, 1, 2)).sum())
+    return verts - edges + faces - cubes
+
+
+def _genus(solid: np.ndarray) -> int:
+    """Handles of a one-component, cavity-free solid, counted both ways diagonal contacts can go.
+
+    Closed cubes of the solid (its diagonal contacts connect): genus 1 - chi(solid). Closed
+    cubes of the complement in the solid's box grown by one voxel (the complement's diagonal
+    contacts connect, i.e. the solid is face-connected): that region's boundary is the box
+    (a sphere) plus the solid's surface, so chi = (2 + 2 - 2 genus) / 2 and genus = 2 - chi.
+    Marching cubes on a smoothed mask can resolve a diagonal contact either way, so a surface is
+    a sphere for sure only when both are 0; the larger is returned.
+    """
+    sl = _bbox(solid, 1)
+    if sl is None:
+        return 0
+    sub = solid[sl]
+    return max(1 - euler_characteristic(sub), 2 - euler_characteristic(~sub), 0)
+
+
+def _plug_tunnels(L: np.ndarray, k: int, vox, max_r: int, kept: np.ndarray | None) -> int:
+    """Plug the tunnels of solid k = {1 <= L <= k} in place; returns the pieces added.
+
+    Closings of radius 1..max_r voxels (in mm: r * the largest voxel edge, a ball) propose voxels;
+    each 26-connected piece is added (as label k) only if it raises the Euler characteristic of
+    the solid plus that of its complement (both diagonal conventions of :func:`_genus`), computed
+    on the piece's bounding box grown by 2 voxels: every cell a piece adds or removes lies within
+    one voxel of it, so the difference there is the difference of the whole grid.
+    """
+    solid = (L >= 1) & (L <= k)
+    if k == 1 and kept is not None:
+        solid = solid | kept
+    if _genus(solid) == 0:
+        return 0
+    n_added = 0
+    for r in range(1, max_r + 1):
+        st = ball(r * float(np.max(vox)), vox)
+        cand = _close(solid, st) & ~solid
+        lab, n = ndi.label(cand, structure=_CUBE)
+        for i, sl in enumerate(ndi.find_objects(lab), start=1):
+            if sl is None:
+                continue
+            win = tuple(slice(max(a.start - 2, 0), min(a.stop + 2, m)) for a, m in zip(sl, L.shape))
+            piece = lab[win] == i
+            sub = solid[win]
+            gain = (euler_characteristic(sub | piece) - euler_characteristic(sub)
+                    + euler_characteristic(~(sub | piece)) - euler_characteristic(~sub))
+            if gain > 0:
+                solid[win] |= piece
+                L[win][piece] = k
+                n_added += 1
+        if _genus(solid) == 0:
+            break
+    return n_added
+
+
+def _pad_to(st: np.ndarray, shape) -> np.ndarray:
+    """Centre `st` in a zero array of `shape` (each axis at least st's; odd sizes)."""
+    shape = np.maximum(np.array(st.shape), np.array(shape))
+    out = np.zeros(tuple(shape), dtype=bool)
+    off = (shape - np.array(st.shape)) // 2
+    out[tuple(slice(o, o + n) for o, n in zip(off, st.shape))] = st
+    return out
+
+
+def _side_name(affine: np.ndarray, ax: int, end: int) -> str:
+    """Anatomical direction (RAS world) of the outward normal of grid face (ax, end)."""
+    d = affine[:3, ax] * (-1.0 if end == 0 else 1.0)
+    w = int(np.argmax(np.abs(d)))
+    return (("left", "right"), ("posterior", "anterior"), ("inferior", "superior"))[w][int(d[w] > 0)]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -455,26 +622,59 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
     The rules and their order are in this module's docstring.
 
     Arguments:
-        labels: (x, y, z) label map with BRAIN, CSF, SKULL and SCALP voxels, background on the
-            border (see :func:`pad_labels`).
+        labels: (x, y, z) label map with BRAIN, CSF, SKULL and SCALP voxels. Tissue on the volume
+            border is a field-of-view cut: closed when ``cfg.fov_cut == "close"``, else an error.
         cfg: the rule settings.
     Returns:
-        (layers, report): the cleaned LabelMap on the same grid and affine, and a LayerReport.
+        (layers, report): the cleaned LabelMap and a LayerReport. The grid and affine are the
+        input's, grown by ``report.padding`` where a cut was closed or a shell grew past the
+        border (world positions of the input voxels are kept).
     """
-    check_labels(labels, "labels")
     if not isinstance(cfg, LayerConfig):
         raise ValueError(f"`cfg` must be a LayerConfig, got {type(cfg).__name__}.")
+    check_labels(labels, "labels", allow_border=cfg.fov_cut == "close")
     vox = labels.voxel_mm
     radii = cfg.closing_radii(vox)
     thick = cfg.thicknesses(vox)
     before_vol = labels.tissue_volumes_mm3()
+    cuts = _border_tissues(labels.labels)
 
-    # Work on a grid padded with background wide enough for every structuring element and for
-    # the outward growth of skull and scalp; a head that grows into the pad is an error below.
-    grow_mm = thick[Tissue.SKULL] + thick[Tissue.SCALP]
-    pad = int(np.ceil(max(grow_mm, 2 * max(radii.values())) / vox.min())) + 4
+    # Work on a grid padded with background wide enough for every structuring element, for the
+    # outward growth of skull and scalp and for the caps of a field-of-view cut (all three shells).
+    grow_mm = thick[Tissue.CSF] + thick[Tissue.SKULL] + thick[Tissue.SCALP]
+    pad = int(np.ceil(max(grow_mm + 2 * float(np.max(vox)), 2 * max(radii.values())) / vox.min())) + 4
     L = np.pad(labels.labels.astype(np.uint8), pad, constant_values=0)
+    core = tuple(slice(pad, pad + n) for n in labels.shape)
     ledger = _Ledger()
+
+    # 0. field-of-view cuts: cap each shell beyond every cut face, inside out
+    prev = L.copy()
+    faces = []
+    if cuts:
+        beyond = np.zeros(L.shape, dtype=bool)
+        for ax in range(3):
+            for end in (0, 1):
+                face = np.take(labels.labels, 0 if end == 0 else -1, axis=ax)
+                if not face.any():
+                    continue
+                sl = [slice(None)] * 3
+                sl[ax] = slice(0, pad) if end == 0 else slice(pad + labels.shape[ax], None)
+                beyond[tuple(sl)] = True
+                counts = np.bincount(face.ravel().astype(np.int64), minlength=len(Tissue))
+                area = float(np.prod(np.delete(vox, ax)))
+                faces.append({"face": f"{'xyz'[ax]}={'0' if end == 0 else 'max'}",
+                              "side": _side_name(labels.affine, ax, end), "axis": ax, "end": end,
+                              "tissue_voxels": int(counts[1:].sum()),
+                              "tissues": {t.name.lower(): int(counts[int(t)]) for t in TISSUES
+                                          if counts[int(t)]},
+                              "area_mm2": float(counts[1:].sum()) * area})
+        for t in _SHELLS:
+            st = _pad_to(ball(thick[t], vox), (3, 3, 3))
+            st = st | _pad_to(_CUBE, st.shape)  # at least the 3x3x3 rule
+            inner = (L >= 1) & (L < int(t))
+            add = _dilate(inner, st) & beyond & (L == 0)
+            L[add] = int(t)
+    ledger.record("fov", prev, L)
 
     # 1. closing of each tissue of the input; an outer layer's closing wins a contested voxel
     prev = L.copy()
@@ -510,24 +710,57 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
     _fill_and_connect(L, ledger, kept, fill=False, connect=True)
     ledger.record("components", prev, L)
 
-    # 5. strict nesting: the paper's 3x3x3 rule for every shell, then clean up
-    prev = L.copy()
-    for t in _SHELLS:
-        _shell_rule(L, t, _CUBE, kept)
-    if not np.array_equal(prev, L):
-        _fill_and_connect(L, ledger, kept)
-    ledger.record("nesting", prev, L)
+    def solid(k):
+        S = (L >= 1) & (L <= k)
+        return S | kept if (k == 1 and kept is not None) else S
 
-    # 6. minimum thickness in mm (balls contained in the 3x3x3 cube are already satisfied)
-    prev = L.copy()
-    for t in _SHELLS:
-        st = ball(thick[t], vox)
-        if st.shape[0] <= 3 and st.shape[1] <= 3 and st.shape[2] <= 3:
-            continue
-        _shell_rule(L, t, st, kept)
-    if not np.array_equal(prev, L):
+    genus_before = {Tissue(k): _genus(solid(k)) for k in (1, 2, 3, 4)}
+    plugged = {t: 0 for t in TISSUES}
+
+    def tunnels() -> bool:
+        if cfg.tunnels != "plug":
+            return False
+        prev_t = L.copy()
+        for k in (4, 3, 2, 1):
+            plugged[Tissue(k)] += _plug_tunnels(L, k, vox, cfg.max_tunnel_voxels, kept)
+        if np.array_equal(prev_t, L):
+            return False
         _fill_and_connect(L, ledger, kept)
-    ledger.record("thickness", prev, L)
+        ledger.record("tunnels", prev_t, L)
+        return True
+
+    def nesting(rule):
+        prev_n = L.copy()
+        for t in _SHELLS:
+            _shell_rule(L, t, _CUBE, kept)
+        if not np.array_equal(prev_n, L):
+            _fill_and_connect(L, ledger, kept)
+        ledger.record(rule, prev_n, L)
+
+    def thickness(rule):
+        # balls contained in the 3x3x3 cube are already satisfied by the nesting rule
+        prev_t = L.copy()
+        for t in _SHELLS:
+            st = ball(thick[t], vox)
+            if st.shape[0] <= 3 and st.shape[1] <= 3 and st.shape[2] <= 3:
+                continue
+            _shell_rule(L, t, st, kept)
+        if not np.array_equal(prev_t, L):
+            _fill_and_connect(L, ledger, kept)
+        ledger.record(rule, prev_t, L)
+
+    # 4b. tunnels: every nested solid genus 0
+    tunnels()
+    # 5. strict nesting: the paper's 3x3x3 rule for every shell, then clean up
+    nesting("nesting")
+    # 6. minimum thickness in mm
+    thickness("thickness")
+    # growth can bridge a groove: plug again, then restore nesting and thickness (twice at most)
+    for _ in range(2):
+        if not tunnels():
+            break
+        nesting("nesting")
+        thickness("thickness")
 
     for t in TISSUES:
         if not np.any(L == int(t)):
@@ -535,30 +768,49 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
                 f"make_layers removed every {t.name} voxel (the layer is thinner than the rules "
                 "allow); check the segmentation or lower `min_thickness_mm`.")
 
-    # Crop back; anything grown into the pad (or onto the original border) is an error.
-    core = tuple(slice(pad, pad + n) for n in labels.shape)
-    inside = np.zeros_like(L, dtype=bool)
-    inside[core] = True
-    out = L[core]
-    outside = L.astype(bool) & ~inside
-    border = _border_tissues(out)
-    if outside.any() or border:
-        sl = _bbox(L.astype(bool), 0)
-        need = max(max(pad - s.start for s in sl), max(s.stop - pad - n for s, n in zip(sl, labels.shape)))
-        need = max(need, 0) + 1
-        tissues = sorted({Tissue(int(v)) for v in np.unique(L[outside])} | set(border), key=int)
-        raise ValueError(
-            f"after growing the skull and scalp shells (strict nesting, minimum thickness), "
-            f"{', '.join(t.name for t in tissues)} reaches the volume border; pad the label map "
-            f"first, e.g. "
-            f"`pad_labels(labels, {need})`, or lower `min_thickness_mm`.")
+    # Crop back to the input grid, grown where a cut was closed (fov_cut="close": also where a
+    # shell grew past the border); with fov_cut="error" anything grown past the border is an error.
+    if cfg.fov_cut == "close":
+        box = _bbox(L.astype(bool), 1)
+        crop = tuple(slice(min(c.start, b.start), max(c.stop, b.stop)) for c, b in zip(core, box))
+    else:
+        crop = core
+        inside = np.zeros_like(L, dtype=bool)
+        inside[core] = True
+        outside = L.astype(bool) & ~inside
+        border = _border_tissues(L[core])
+        if outside.any() or border:
+            sl = _bbox(L.astype(bool), 0)
+            need = max(max(pad - s.start for s in sl),
+                       max(s.stop - pad - n for s, n in zip(sl, labels.shape)))
+            need = max(need, 0) + 1
+            tissues = sorted({Tissue(int(v)) for v in np.unique(L[outside])} | set(border), key=int)
+            raise ValueError(
+                f"after growing the skull and scalp shells (strict nesting, minimum thickness), "
+                f"{', '.join(t.name for t in tissues)} reaches the volume border; pad the label map "
+                f"first, e.g. `pad_labels(labels, {need})`, set LayerConfig(fov_cut='close'), or "
+                f"lower `min_thickness_mm`.")
+    padding = tuple((int(core[a].start - crop[a].start), int(crop[a].stop - core[a].stop))
+                    for a in range(3))
+    out = L[crop]
+    shift = np.eye(4)
+    shift[:3, 3] = [-p[0] for p in padding]
+    affine = labels.affine @ shift
+    for f in faces:
+        p = padding[f.pop("axis")][f.pop("end")]
+        f["pad_voxels"] = int(p)
+        f["pad_mm"] = float(p * vox[["x", "y", "z"].index(f["face"][0])])
+    if faces:
+        log.info("make_layers: field-of-view cut closed at %s", ", ".join(
+            f"{f['face']} ({f['side']}, {f['tissue_voxels']} tissue voxels, padded {f['pad_voxels']})"
+            for f in faces))
 
     if kept is not None:
-        kept_core = kept[core]
-        n_kept = int(kept_core.sum())
+        n_kept = int(kept[crop].sum())
     else:
         n_kept = 0
-    layers = LabelMap(out, labels.affine)
+    genus_after = {Tissue(k): _genus(solid(k)) for k in (1, 2, 3, 4)}
+    layers = LabelMap(out, affine)
     report = LayerReport(
         shape=tuple(int(s) for s in labels.shape),
         voxel_mm=tuple(float(v) for v in vox),
@@ -570,6 +822,11 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
         min_thickness_mm=dict(thick),
         volumes_before_mm3=before_vol,
         volumes_after_mm3=layers.tissue_volumes_mm3(),
+        fov_cuts=tuple(faces),
+        padding=padding,
+        tunnels_plugged=dict(plugged),
+        genus_before=genus_before,
+        genus_after=genus_after,
     )
     return layers, report
 

@@ -199,6 +199,12 @@ class SurfaceStats:
             max(3 mm, 2 min_gap_mm) (None for SCALP).
         self_intersections: intersecting face pairs (None if not checked).
         seconds: wall time per step.
+        untangled_pairs: self-intersecting face pairs found and repaired (after remeshing and
+            after the gap step, summed); untangle_rounds: local smoothing rounds they took;
+            untangled_vertices: vertices moved by them.
+        remesh_retries: times the surface was remeshed again at a finer edge because local
+            smoothing could not remove its self-intersections.
+        gap_rounds: separate -> untangle rounds the gap step took (1 when nothing was repaired).
     """
 
     tissue: Tissue
@@ -221,11 +227,18 @@ class SurfaceStats:
     gap_to_outer_mm: float | None
     self_intersections: int | None
     seconds: Mapping[str, float]
+    untangled_pairs: int = 0
+    untangle_rounds: int = 0
+    untangled_vertices: int = 0
+    remesh_retries: int = 0
+    gap_rounds: int = 1
 
     @property
     def n_repairs(self) -> int:
-        """Components dropped + holes filled + faces flipped."""
-        return self.components_dropped + self.hole_faces_added + self.faces_flipped
+        """Components dropped + holes filled + faces flipped + self-intersections untangled +
+        remesh retries."""
+        return (self.components_dropped + self.hole_faces_added + self.faces_flipped
+                + self.untangled_pairs + self.remesh_retries)
 
 
 @dataclass(frozen=True)
@@ -263,8 +276,10 @@ class SurfaceReport:
                 f"         repaired: {s.components_dropped} components ({s.faces_dropped} faces) "
                 f"dropped, {s.hole_faces_added} faces added to close holes, {s.faces_flipped} faces flipped, "
                 f"{s.cavity_voxels} cavity voxels filled; gap: {s.gap_vertices_moved} vertices "
-                f"moved (max {s.max_move_mm:.2f} mm); self-intersections "
-                f"{'-' if s.self_intersections is None else s.self_intersections}")
+                f"moved (max {s.max_move_mm:.2f} mm, {s.gap_rounds} rounds); self-intersections "
+                f"untangled: {s.untangled_pairs} face pairs ({s.untangle_rounds} rounds, "
+                f"{s.untangled_vertices} vertices smoothed, {s.remesh_retries} finer remeshes); "
+                f"left: {'-' if s.self_intersections is None else s.self_intersections}")
         return "\n".join(lines)
 
 
@@ -781,6 +796,80 @@ def _separate(inner: Surface, outer: Surface, gap: float, max_iter: int,
     return Surface(V, F, inner.tissue), int(moved.sum()), float(total.max(initial=0.0))
 
 
+def _vertex_adjacency(F: np.ndarray, n_verts: int) -> sparse.csr_matrix:
+    """Vertex-vertex adjacency through edges, (n_verts, n_verts) with ones."""
+    a, b = F.ravel().astype(np.int64), F[:, [1, 2, 0]].ravel().astype(np.int64)
+    A = sparse.coo_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])),
+                          shape=(n_verts, n_verts)).tocsr()
+    A.data[:] = 1.0
+    return A
+
+
+#: Local smoothing of a tangled region: rounds (each grows the region by one more ring of
+#: vertices) and uniform-Laplacian steps per round. A fold left by remeshing or by the gap push
+#: spans a few faces; 10 steps of 0.5 on a region r rings wide relax it to the membrane spanned
+#: by the fixed ring around it (the Laplacian's smoothing length ~ sqrt(steps) edges).
+_UNTANGLE_ROUNDS = 6
+_UNTANGLE_STEPS = 10
+
+
+def _untangle(V: np.ndarray, F: np.ndarray, tissue: Tissue) -> tuple[np.ndarray, dict]:
+    """Remove self-intersections by smoothing only the regions around the intersecting faces.
+
+    Round r moves the vertices within r rings of every face found intersecting so far (uniform
+    Laplacian, the ring beyond held fixed) and re-checks the whole surface with
+    :func:`self_intersections`; it stops when none are left or after ``_UNTANGLE_ROUNDS``.
+    Connectivity never changes, so the surface stays closed and manifold.
+
+    Returns:
+        (vertices, counts): counts has "pairs" (found at the start), "rounds", "vertices"
+        (moved) and "left" (pairs still intersecting).
+    """
+    si = self_intersections(Surface(V, F, tissue))
+    counts = {"pairs": int(len(si)), "rounds": 0, "vertices": 0, "left": int(len(si))}
+    if len(si) == 0:
+        return V, counts
+    A = _vertex_adjacency(F, len(V))
+    deg = np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1.0)
+    V = V.copy()
+    seed = np.zeros(len(V), dtype=bool)
+    moved = np.zeros(len(V), dtype=bool)
+    for r in range(1, _UNTANGLE_ROUNDS + 1):
+        seed[F[si].ravel()] = True
+        region = seed.copy()
+        for _ in range(r):
+            region |= (A @ region.astype(np.float64)) > 0
+        idx = np.flatnonzero(region)
+        for _ in range(_UNTANGLE_STEPS):
+            avg = (A @ V)[idx] / deg[idx, None]
+            V[idx] += 0.5 * (avg - V[idx])
+        moved |= region
+        counts["rounds"] = r
+        si = self_intersections(Surface(V, F, tissue))
+        if len(si) == 0:
+            break
+    counts["vertices"] = int(moved.sum())
+    counts["left"] = int(len(si))
+    log.info("%s surface: %d self-intersecting face pairs untangled by local smoothing "
+             "(%d rounds, %d vertices moved, %d left)", tissue.name, counts["pairs"],
+             counts["rounds"], counts["vertices"], counts["left"])
+    return V, counts
+
+
+#: Finer edges (fractions of edge_mm) tried, in order, when local smoothing cannot untangle a
+#: remeshed surface: a fold comes from a feature narrower than the edge (a groove or ridge a
+#: voxel or two wide), which a finer remesh resolves.
+_REMESH_SCALES = (1.0, 0.7, 0.5)
+#: separate -> untangle rounds of the gap step before giving up.
+_GAP_ROUNDS = 4
+
+
+def _add_untangle(acc: dict, u: dict) -> None:
+    acc["untangled_pairs"] += u["pairs"]
+    acc["untangle_rounds"] += u["rounds"]
+    acc["untangled_vertices"] += u["vertices"]
+
+
 def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConfig()
                               ) -> tuple[dict[Tissue, Surface], SurfaceReport]:
     """Surfaces of the four nested solids of a layered label map, repaired, remeshed and nested.
@@ -831,13 +920,29 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
         V = _taubin(V, F, cfg)
         sec["smooth"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        V, F = _remesh(V, F, edges[t], cfg)
-        V, F, rep2 = _repair(V, F, t, "remeshing")
+        unt = {"untangled_pairs": 0, "untangle_rounds": 0, "untangled_vertices": 0}
+        retries = 0
+        for scale in _REMESH_SCALES:
+            Vr, Fr = _remesh(V, F, edges[t] * scale, cfg)
+            Vr, Fr, rep2 = _repair(Vr, Fr, t, "remeshing")
+            if not cfg.check_self_intersections:
+                break
+            Vr, u = _untangle(Vr, Fr, t)
+            _add_untangle(unt, u)
+            if u["left"] == 0:
+                break
+            if scale != _REMESH_SCALES[-1]:
+                retries += 1
+                log.info("%s surface: %d self-intersecting face pairs left after local smoothing; "
+                         "remeshing again at edge %.2f mm", t.name, u["left"],
+                         edges[t] * _REMESH_SCALES[retries])
+        V, F = Vr, Fr
         sec["remesh"] = time.perf_counter() - t0
         surfaces[t] = Surface(V, F, t)
         info[t] = dict(solid_voxels=int(mask.sum()), cavity_voxels=n_cavity,
                        voxel_volume_mm3=float(mask.sum()) * vox_vol, mc_faces=n_mc,
-                       **{k: rep1[k] + rep2[k] for k in rep1}, sec=sec)
+                       **{k: rep1[k] + rep2[k] for k in rep1}, sec=sec, remesh_retries=retries,
+                       **unt)
 
     # Gap, outside in: only the inner surface of each pair moves (inward).
     gaps: dict[Tissue, float | None] = {Tissue.SCALP: None}
@@ -848,9 +953,23 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
         # remeshing cut a corner (sag ~ h^2 / 8R) or smoothing moved them: a vertex needing more
         # than the gap plus half an edge means the shell itself is too thin.
         limit = cfg.min_gap_mm * 1.1 + 0.5 * edges[inner_t]
-        new, n_moved, max_move = _separate(surfaces[inner_t], surfaces[outer_t], cfg.min_gap_mm,
-                                           cfg.max_gap_iterations, limit)
-        surfaces[inner_t] = new
+        # Pushing vertices along their normals can fold the surface where it is concave (a
+        # groove narrower than the push); such folds are smoothed locally and the result is
+        # separated again, until a round needs no untangling.
+        n_moved, max_move = 0, 0.0
+        for rnd in range(1, _GAP_ROUNDS + 1):
+            new, n, mv = _separate(surfaces[inner_t], surfaces[outer_t], cfg.min_gap_mm,
+                                   cfg.max_gap_iterations, limit)
+            n_moved, max_move = n_moved + n, max(max_move, mv)
+            surfaces[inner_t] = new
+            if not cfg.check_self_intersections or n == 0:
+                break
+            Vu, u = _untangle(new.vertices, new.faces, inner_t)
+            _add_untangle(info[inner_t], u)
+            if u["pairs"] == 0:
+                break
+            surfaces[inner_t] = new = Surface(Vu, new.faces, inner_t)
+        info[inner_t]["gap_rounds"] = rnd
         # search 3 mm (or 2 gaps): enough to report the typical gap, cheap for manifold3d
         gap = surface_gap_mm(new, surfaces[outer_t], search_mm=max(2 * cfg.min_gap_mm, 3.0))
         if gap < cfg.min_gap_mm * (1 - 1e-6) or gap == 0.0:
@@ -887,7 +1006,9 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
             n_verts=len(s.vertices), n_faces=len(s.faces), area_mm2=surface_area_mm2(s),
             volume_mm3=chk.volume_mm3, edge_target_mm=edges[t], edge_mm=_edge_stats(s),
             gap_to_outer_mm=gaps[t], self_intersections=chk.self_intersections,
-            seconds=dict(d["sec"]))
+            seconds=dict(d["sec"]), untangled_pairs=d["untangled_pairs"],
+            untangle_rounds=d["untangle_rounds"], untangled_vertices=d["untangled_vertices"],
+            remesh_retries=d["remesh_retries"], gap_rounds=d.get("gap_rounds", 1))
     report = SurfaceReport(stats=stats, min_gap_mm=cfg.min_gap_mm,
                            seconds=time.perf_counter() - t_start)
     return surfaces, report
