@@ -252,8 +252,6 @@ def anatomy_atlas(anatomy, modality: Modality = "mri", *, voxel_mm: float = 2.0,
     Priors: the anatomy's class fractions blurred by 3 mm plus a 5 % share of every head tissue
     (`templates.atlas_priors`); template: a synthesised scan of the modality (`templates.render`).
     """
-    from .templates import atlas_sources
-
     modality = check_modality(modality)
     template, priors, affine = atlas_sources(anatomy, modality, voxel_mm)
     return Atlas(template, priors, affine, modality, 1, name or anatomy.name)
