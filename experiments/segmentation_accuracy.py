@@ -99,6 +99,8 @@ def run(args) -> list[dict]:
                              seconds=time.perf_counter() - t, nmi=seg.registration["nmi"], **d))
             log.info("%s %s noise %g %s (atlas %s): %s (%.0f s)", anat, modality, noise, contrast, atlas.name,
                      {k: round(v, 3) for k, v in d.items()}, rows[-1]["seconds"])
+            if getattr(args, "partial", None):  # rows so far, so that an interrupted run leaves them
+                _write_atomic(args.partial, json.dumps(rows, indent=1))
     return rows
 
 
@@ -141,6 +143,7 @@ def main(argv=None):
     p.add_argument("--heads", default=str(HEADS), help="folder of the ANTs head (c1..c6 .jnii)")
     p.add_argument("--out", default=None, help="path stem: write <out>.json and <out>.md, atomically")
     args = p.parse_args(argv)
+    args.partial = (args.out[:-5] if args.out.endswith(".json") else args.out) + ".partial.json" if args.out else None
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     for name in ("jax", "jaxhead"):
         logging.getLogger(name).setLevel(logging.WARNING)
