@@ -93,7 +93,14 @@ def run(args) -> list[dict]:
         cfg = SegmentConfig(modality=modality)
         for anat, atlas, noise, contrast, vol, truth in cases(modality, args.voxel_mm, args.seeds, Path(args.heads)):
             t = time.perf_counter()
-            seg = segment(vol, atlas, cfg)
+            try:
+                seg = segment(vol, atlas, cfg)
+            except ValueError as err:  # a refused scan (e.g. judged mis-oriented) counts as Dice 0
+                log.warning("%s %s noise %g %s: segment refused it: %s", anat, modality, noise, contrast, err)
+                d = {t_.name.lower(): 0.0 for t_ in TISSUES}
+                rows.append(dict(anatomy=anat, atlas=atlas.name, modality=modality, noise=noise, contrast=contrast,
+                                 seconds=time.perf_counter() - t, nmi=float("nan"), error=str(err)[:200], **d))
+                continue
             d = dice_per_tissue(seg.labels.labels, truth)
             rows.append(dict(anatomy=anat, atlas=atlas.name, modality=modality, noise=noise, contrast=contrast,
                              seconds=time.perf_counter() - t, nmi=seg.registration["nmi"], **d))

@@ -559,7 +559,7 @@ def segment(volume: Volume, atlas: Atlas | None = None, cfg: SegmentConfig = Seg
         atlas = default_atlas(cfg.modality, atlas=cfg.atlas, voxel_mm=cfg.atlas_voxel_mm,
                               n_subjects=cfg.atlas_subjects)
     t0 = time.perf_counter()
-    orientation = check_orientation(volume, atlas, ORIENTATION_MARGIN if cfg.check_registration else np.inf)
+    orientation = check_orientation(volume, atlas) if cfg.check_registration else {}
     transform, priors = register_atlas(volume, atlas, cfg)
     priors.block_until_ready()
     summary = {**registration_summary(volume, atlas, transform), **orientation}
