@@ -172,6 +172,8 @@ def main(argv=None):
                     command=command)
         _write_atomic(stem + ".json", json.dumps(dict(meta=meta, rows=rows), indent=1))
         _write_atomic(stem + ".md", f"{head}\n\nCommand: `{command}`\n\n{table(rows)}\n")
+        if args.partial and os.path.exists(args.partial):
+            os.unlink(args.partial)
     return 0
 
 
