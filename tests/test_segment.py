@@ -36,7 +36,7 @@ def test_default_atlas_reads_the_cache(atlas_mri, tmp_path, monkeypatch):
     assert cache_dir() == path.parent
     atlas_mri.save(path)
     assert list(path.parent.glob("*tmp*")) == []  # written atomically: nothing left over
-    got = default_atlas("mri", voxel_mm=VOX, n_subjects=3)  # found in the cache: not rebuilt
+    got = default_atlas("mri", atlas="phantom", voxel_mm=VOX, n_subjects=3)  # found in the cache: not rebuilt
     # float16 priors on disk, renormalised on load: |change| < 1e-3
     np.testing.assert_allclose(got.priors, atlas_mri.priors, atol=1e-3)
     np.testing.assert_allclose(got.template, atlas_mri.template, rtol=1e-6)

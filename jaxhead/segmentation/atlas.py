@@ -11,8 +11,10 @@ Affine registration only, on purpose: the spread of the aligned examples *is* th
 uncertainty, which the EM's relaxation and MRF then resolve; a non-linear atlas would be over-
 confident about the anatomy of the examples.
 
-The default atlas of each modality is built from a phantom population (`jaxhead.phantom`) at first
-use and cached as .npz under ``$XDG_CACHE_HOME/jaxhead`` (or ``~/.cache/jaxhead``), written
+The default atlas of each modality is built from real anatomy installed with the package registries
+(`templates.mni152_anatomy`: the MNI152 ICBM 2009a brain from nilearn in fsaverage's inner skull and
+scalp from MNE; `default_atlas(atlas="mni152")`); the phantom atlas, built from a phantom population
+(`jaxhead.phantom`), is there when asked for (`atlas="phantom"`). Both are built at first use and cached as .npz under ``$XDG_CACHE_HOME/jaxhead`` (or ``~/.cache/jaxhead``), written
 atomically; it needs no network.
 """
 
@@ -31,6 +33,7 @@ from ..phantom import make_population
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, check_affine
 from .register import RegisterConfig, register, resample
+from .templates import atlas_sources, mni152_anatomy
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +42,7 @@ MODALITIES = ("mri", "ct")
 N_CLASSES = len(Tissue)
 
 #: Bump when the default atlas recipe changes (invalidates cached files).
-ATLAS_VERSION = 1
+ATLAS_VERSION = 2
 #: Seeds of the default atlas subjects start here; keep test/evaluation subjects below it.
 DEFAULT_ATLAS_SEED = 1000
 
@@ -61,6 +64,7 @@ class Atlas(eqx.Module):
         affine: (4, 4) voxel -> world mm (RAS).
         modality: "mri" or "ct".
         n_subjects: number of examples averaged.
+        name: where the atlas comes from (e.g. "mni152", "phantom"), for reports.
     """
 
     template: np.ndarray
@@ -68,13 +72,15 @@ class Atlas(eqx.Module):
     affine: np.ndarray
     modality: str = eqx.field(static=True)
     n_subjects: int = eqx.field(static=True, default=1)
+    name: str = eqx.field(static=True, default="custom")
 
-    def __init__(self, template, priors, affine, modality, n_subjects=1):
+    def __init__(self, template, priors, affine, modality, n_subjects=1, name="custom"):
         self.template = np.asarray(template, dtype=np.float64)
         self.priors = np.asarray(priors, dtype=np.float32)
         self.affine = np.asarray(affine, dtype=np.float64)
         self.modality = check_modality(modality)
         self.n_subjects = int(n_subjects)
+        self.name = str(name)
 
     def __check_init__(self):
         if self.template.ndim != 3:
@@ -115,7 +121,7 @@ class Atlas(eqx.Module):
             np.savez_compressed(
                 tmp, template=self.template.astype(np.float32), priors=self.priors.astype(np.float16),
                 affine=self.affine, modality=np.array(self.modality), n_subjects=np.array(self.n_subjects),
-                version=np.array(ATLAS_VERSION),
+                version=np.array(ATLAS_VERSION), name=np.array(self.name),
             )
             os.replace(tmp, path)
         finally:
@@ -129,7 +135,8 @@ class Atlas(eqx.Module):
         with np.load(path) as z:
             priors = z["priors"].astype(np.float32)
             priors /= priors.sum(0, keepdims=True)  # float16 storage: renormalise (|change| < 1e-3)
-            return cls(z["template"], priors, z["affine"], str(z["modality"]), int(z["n_subjects"]))
+            name = str(z["name"]) if "name" in z else "custom"
+            return cls(z["template"], priors, z["affine"], str(z["modality"]), int(z["n_subjects"]), name)
 
 
 def _one_hot(labels: np.ndarray) -> np.ndarray:
@@ -226,25 +233,57 @@ def cache_dir() -> Path:
     return Path(base) / "jaxhead"
 
 
+ATLAS_KINDS = ("mni152", "phantom")
+
+
+def check_atlas_kind(kind, name: str = "atlas") -> str:
+    """Validate an atlas source name ("mni152" or "phantom")."""
+    if not isinstance(kind, str) or kind.lower() not in ATLAS_KINDS:
+        raise ValueError(
+            f"`{name}` must be one of {ATLAS_KINDS} ('mni152': real anatomy, the default; 'phantom': "
+            f"jaxhead's synthetic heads, for tests and the synthetic demo), got {kind!r}."
+        )
+    return kind.lower()
+
+
+def anatomy_atlas(anatomy, modality: Modality = "mri", *, voxel_mm: float = 2.0, name: str | None = None) -> Atlas:
+    """An atlas of one real anatomy (`jaxhead.segmentation.templates.Anatomy`) at `voxel_mm`.
+
+    Priors: the anatomy's class fractions blurred by 3 mm plus a 5 % share of every head tissue
+    (`templates.atlas_priors`); template: a synthesised scan of the modality (`templates.render`).
+    """
+    modality = check_modality(modality)
+    template, priors, affine = atlas_sources(anatomy, modality, voxel_mm)
+    return Atlas(template, priors, affine, modality, 1, name or anatomy.name)
+
+
 def default_atlas(
-    modality: Modality = "mri", *, voxel_mm: float = 2.0, n_subjects: int = 8, seed: int = DEFAULT_ATLAS_SEED,
-    cache: bool = True,
+    modality: Modality = "mri", *, atlas: str = "mni152", voxel_mm: float = 2.0, n_subjects: int = 8,
+    seed: int = DEFAULT_ATLAS_SEED, cache: bool = True,
 ) -> Atlas:
-    """The default atlas of a modality, built from phantom subjects and cached on disk.
+    """The default atlas of a modality, built on first use and cached on disk.
 
     Arguments:
         modality: "mri" or "ct".
+        atlas: "mni152" (default): real anatomy, the ICBM 2009a MNI152 brain (nilearn) in
+            fsaverage's inner skull and scalp (MNE), `templates.mni152_anatomy`; "phantom":
+            averaged `jaxhead.phantom` subjects (tests, the synthetic demo).
         voxel_mm: atlas voxel size in mm.
-        n_subjects: phantom subjects averaged (seeds seed .. seed + n_subjects - 1).
-        seed: first subject's seed (default 1000, disjoint from evaluation subjects 0..999).
-        cache: read/write the cache file (``cache_dir()/atlas_<modality>_<voxel>mm_n<n>_s<seed>_v<version>.npz``).
+        n_subjects, seed: phantom atlas only: subjects averaged (seeds seed .. seed + n_subjects - 1;
+            default 1000, disjoint from evaluation subjects 0..999).
+        cache: read/write the cache file under `cache_dir()`.
     Returns:
-        Atlas (built in about a minute at 2 mm on first use, then loaded from the cache).
+        Atlas (its `name` says which); built in seconds (mni152) to about a minute (phantom, 2 mm)
+        on first use, then loaded from the cache.
     """
     modality = check_modality(modality)
+    kind = check_atlas_kind(atlas)
     if not voxel_mm > 0 or n_subjects < 1:
         raise ValueError(f"`voxel_mm` must be > 0 and `n_subjects` >= 1, got {voxel_mm}, {n_subjects}.")
-    name = f"atlas_{modality}_{voxel_mm:g}mm_n{n_subjects}_s{seed}_v{ATLAS_VERSION}.npz"
+    if kind == "phantom":
+        name = f"atlas_{modality}_{voxel_mm:g}mm_n{n_subjects}_s{seed}_v{ATLAS_VERSION}.npz"
+    else:
+        name = f"atlas_{kind}_{modality}_{voxel_mm:g}mm_v{ATLAS_VERSION}.npz"
     path = cache_dir() / name
     if cache and path.exists():
         try:
@@ -252,12 +291,17 @@ def default_atlas(
         except Exception as err:  # a corrupt cache file is rebuilt, and said so
             log.warning("atlas cache %s unreadable (%s); rebuilding it", path, err)
 
-    log.info("building the default %s atlas from %d phantom subjects at %g mm", modality, n_subjects, voxel_mm)
-    pop = make_population(n_subjects, modality, seed=seed, voxel_mm=voxel_mm)
-    vols = [v for v, _ in pop]
-    labs = [lab for _, lab in pop]
-    atlas = build_atlas(vols, labs, pad_volume(vols[0], 16.0), modality=modality)
+    if kind == "phantom":
+        log.info("building the phantom %s atlas from %d phantom subjects at %g mm", modality, n_subjects, voxel_mm)
+        pop = make_population(n_subjects, modality, seed=seed, voxel_mm=voxel_mm)
+        vols = [v for v, _ in pop]
+        labs = [lab for _, lab in pop]
+        out = build_atlas(vols, labs, pad_volume(vols[0], 16.0), modality=modality)
+        out = Atlas(out.template, out.priors, out.affine, modality, out.n_subjects, "phantom")
+    else:
+        log.info("building the mni152 %s atlas (MNI152 + fsaverage) at %g mm", modality, voxel_mm)
+        out = anatomy_atlas(mni152_anatomy(), modality, voxel_mm=voxel_mm, name="mni152")
     if cache:
-        atlas.save(path)
+        out.save(path)
         log.info("default atlas cached at %s", path)
-    return atlas
+    return out

@@ -12,6 +12,23 @@ Pipeline (one method for both modalities, as the seed's CT branch: Vonach et al.
 MRI is modelled in log intensity (multiplicative bias -> additive; Van Leemput et al. 1999); CT in
 Hounsfield units with no bias field.
 
+What the intensity model assumes (and what it learns from the scan):
+
+- Each class is a mixture of a few Gaussians (DEFAULT_GAUSSIANS) whose means, variances and weights
+  are all fitted to this scan; nothing about the tissues' contrast is fixed. The start is the
+  registered atlas priors' weighted intensity quantiles of the scan itself (em._init_params), so an
+  MRI with another contrast ratio, a dark or a fat-bright scalp, or a CT with another scanner's HU
+  calibration starts from its own intensities, not the atlas template's.
+- The registered atlas is right to within its blur (priors ~3 mm wide plus a 5 % share of every
+  head tissue inside the head): a tissue the atlas puts nowhere near (facial bones outside the
+  atlas's skull) is found through that share and the prior relaxation.
+- MRI: magnitude image, positive, T1-like or not (any ordering of tissue intensities), a smooth
+  multiplicative bias field (Legendre polynomial, degree 4; tens of per cent), noise small against
+  the tissue contrasts (a few per cent). CT: Hounsfield units (air near -1000), no bias field.
+- Tissue boundaries are smooth on the voxel scale (Potts MRF, beta).
+- The scan is a head in the orientation its affine states (checked: `check_orientation`,
+  `check_registration`).
+
 Precision: the default is float32. Registration similarity and EM posteriors are statistics of
 10^5-10^7 voxels whose noise (MRI ~3 %, CT ~15 HU) is 10^4-10^5 times float32's resolution; the EM's
 sums are nested per axis so their rounding stays ~1e-5 relative. float32 halves the memory (the
@@ -21,6 +38,7 @@ is there for checks (and is what the tests use where they compare with reference
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from collections.abc import Mapping
@@ -31,12 +49,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from nibabel.orientations import aff2axcodes as nib_axcodes
 
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, voxel_sizes
-from .atlas import N_CLASSES, Atlas, default_atlas
+from .atlas import N_CLASSES, Atlas, check_atlas_kind, default_atlas
 from .em import EMOptions, MixtureParams, bias_field, fit_mixture, infer_posteriors
-from .register import RegisterConfig, Transform, register, resample
+from .register import (
+    AffineTransform, BSplineTransform, RegisterConfig, Transform, _level_factors, centre_of_mass, downsample, nmi,
+    register, resample,
+)
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +135,13 @@ class SegmentConfig:
         em_sample_mm: the EM estimates its parameters on every k-th voxel, k = round(this / voxel).
         sweeps: mean-field sweeps on the full grid after an EM on a strided sample of it.
         precision: "float32" (default, see module docstring) or "float64".
-        atlas_voxel_mm, atlas_subjects: the default atlas used when `segment` gets none.
+        atlas: the default atlas used when `segment` gets none: "mni152" (real anatomy: the ICBM
+            2009a MNI152 brain in fsaverage's inner skull and scalp; see templates.py) or "phantom"
+            (jaxhead's synthetic heads: tests, the synthetic demo).
+        atlas_voxel_mm, atlas_subjects: voxel size of that atlas; phantom subjects it averages.
+        check_registration: raise when the atlas registration ends implausibly (a flip, a scale
+            outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
+            MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
     """
 
     modality: Literal["mri", "ct"] = "mri"
@@ -129,8 +157,10 @@ class SegmentConfig:
     em_sample_mm: float = 2.0
     sweeps: int = 3
     precision: Literal["float32", "float64"] = "float32"
+    atlas: Literal["mni152", "phantom"] = "mni152"
     atlas_voxel_mm: float = 2.0
     atlas_subjects: int = 8
+    check_registration: bool = True
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -158,6 +188,9 @@ class SegmentConfig:
             raise ValueError(f"[segment] `sweeps` must be >= 0, got {self.sweeps}.")
         if self.precision not in ("float32", "float64"):
             raise ValueError(f"[segment] `precision` must be 'float32' or 'float64', got {self.precision!r}.")
+        check_atlas_kind(self.atlas, "[segment] atlas")
+        if not isinstance(self.check_registration, (bool, np.bool_)):
+            raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
             raise ValueError("[segment] `atlas_voxel_mm` must be > 0 and `atlas_subjects` >= 1.")
 
@@ -204,6 +237,9 @@ class Segmentation(eqx.Module):
             CT: the additive field in HU (zeros unless cfg.bias_degree > 0).
         n_iter: EM iterations.
         converged: whether the EM met its tolerance.
+        atlas_name: the atlas used (`Atlas.name`: "mni152", "phantom", ...), for the run report.
+        registration: plausibility figures of the affine registration (`registration_summary`):
+            scales, rotation (deg), determinant, NMI after the affine stage.
     """
 
     labels: LabelMap
@@ -214,6 +250,8 @@ class Segmentation(eqx.Module):
     bias_field: np.ndarray
     n_iter: int = eqx.field(static=True)
     converged: bool = eqx.field(static=True)
+    atlas_name: str = eqx.field(static=True, default="custom")
+    registration: dict = eqx.field(static=True, default_factory=dict)
 
 
 def _check_inputs(volume, atlas, cfg):
@@ -266,6 +304,187 @@ def _dtype(cfg: SegmentConfig):
     if dtype == jnp.float64 and not jax.config.jax_enable_x64:
         raise ValueError("`cfg.precision` is 'float64' but JAX x64 is off; enable jax_enable_x64 at your entry point.")
     return dtype
+
+
+#: Plausible affine registrations of a head scan to a head atlas (scan mm -> atlas mm): the singular
+#: values of the linear part (head sizes of adults and children against the MNI152 head, which is
+#: ~10-15 % larger per axis than an average brain), rotation (a scan tilted by more than this is not
+#: a head scan positioned for imaging) and the NMI after the affine stage, measured at 4 mm with 32 bins
+#: (`registration_summary`); see tests/test_segment_real.py and experiments/segmentation_accuracy.py
+#: for the values on good and on mis-oriented scans.
+MIN_SCALE, MAX_SCALE = 0.7, 1.4
+MAX_ROTATION_DEG = 45.0
+MIN_NMI = 1.06
+#: NMI by which another axis orientation must beat the scan's own (`check_orientation`).
+ORIENTATION_MARGIN = 0.01
+
+
+def registration_summary(volume: Volume, atlas: Atlas, transform: Transform) -> dict:
+    """Plausibility figures of an atlas registration (its affine part).
+
+    Arguments:
+        volume: the scan.
+        atlas: the atlas registered to it.
+        transform: scan mm -> atlas mm (AffineTransform or BSplineTransform).
+    Returns:
+        dict: scales (3 singular values of the linear part, descending), det, rotation_deg (angle of
+        the rotation in its polar decomposition), nmi (normalised mutual information of scan and
+        affinely warped template on a 4 mm grid, 32 bins; 1 = independent, 2 = identical).
+    """
+    m = np.asarray(transform.affine if isinstance(transform, BSplineTransform) else transform.matrix, np.float64)
+    lin = m[:3, :3]
+    u, sv, vt = np.linalg.svd(lin)
+    det = float(np.linalg.det(lin))
+    rot = u @ vt
+    if np.linalg.det(rot) < 0:  # a reflection: report the rotation part of -R
+        rot = -rot
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1) / 2, -1.0, 1.0))))
+    factors = _level_factors(volume.affine, 4.0)
+    fd, fa = downsample(volume.data, volume.affine, factors)
+    warped = np.asarray(resample(atlas.template, atlas.affine, AffineTransform(matrix=jnp.asarray(m)), fd.shape, fa,
+                                 dtype=jnp.float32))
+    lo_f, hi_f = np.percentile(fd, [0.5, 99.5])
+    lo_m, hi_m = np.percentile(warped, [0.5, 99.5])
+    val = float(nmi(jnp.asarray(fd.ravel(), jnp.float32), jnp.asarray(warped.ravel(), jnp.float32),
+                    (float(lo_f), float(max(hi_f, lo_f + 1e-6))), (float(lo_m), float(max(hi_m, lo_m + 1e-6))), 32))
+    return dict(scales=[float(x) for x in sv], det=det, rotation_deg=angle, nmi=val)
+
+
+def _signed_permutations() -> list[np.ndarray]:
+    """The 48 axis permutations with signs (rotations by multiples of 90 deg, and their mirrors)."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            m = np.zeros((3, 3))
+            m[np.arange(3), perm] = signs
+            out.append(m)
+    return out
+
+
+def orientation_scores(volume: Volume, atlas: Atlas, resolution_mm: float = 8.0) -> list[tuple[np.ndarray, float]]:
+    """NMI of the scan against the atlas template turned into each of the 48 axis orientations.
+
+    The template is centred on the scan's intensity centre of mass and turned by each signed axis
+    permutation P (scan mm -> atlas mm: q = c_atlas + P (p - c_scan)), without any optimisation, on a
+    `resolution_mm` grid. A correctly oriented scan scores best (or ties with its left-right mirror,
+    a head being nearly symmetric) at P = identity.
+
+    Returns:
+        list of (P (3, 3), NMI), identity first.
+    """
+    fd, fa = downsample(volume.data, volume.affine, _level_factors(volume.affine, resolution_mm))
+    md, ma = downsample(atlas.template, atlas.affine, _level_factors(atlas.affine, resolution_mm))
+    c_f, c_m = centre_of_mass(fd, fa), centre_of_mass(md, ma)
+    lo_f, hi_f = np.percentile(fd, [0.5, 99.5])
+    lo_m, hi_m = np.percentile(md, [0.5, 99.5])
+    a = jnp.asarray(fd.ravel(), jnp.float32)
+    out = []
+    for p in _signed_permutations():
+        m = np.eye(4)
+        m[:3, :3] = p
+        m[:3, 3] = c_m - p @ c_f
+        w = resample(md, ma, AffineTransform(matrix=jnp.asarray(m, jnp.float32)), fd.shape, fa, dtype=jnp.float32)
+        val = nmi(a, w.ravel(), (float(lo_f), float(max(hi_f, lo_f + 1e-6))),
+                  (float(lo_m), float(max(hi_m, lo_m + 1e-6))), 32)
+        out.append((p, float(val)))
+    return out
+
+
+def check_orientation(volume: Volume, atlas: Atlas, margin: float = ORIENTATION_MARGIN) -> dict:
+    """Raise a ValueError when another axis orientation of the scan matches the atlas clearly better.
+
+    Arguments:
+        volume: the scan.
+        atlas: the atlas.
+        margin: NMI by which the best other orientation must beat the scan's own to count as a
+            mis-orientation (ORIENTATION_MARGIN, measured on good and turned scans).
+    Returns:
+        dict (nmi_as_given, nmi_best_other, best_other: the permutation as a nested list).
+    """
+    scores = orientation_scores(volume, atlas)
+    own = scores[0][1]
+    p_best, best = max(scores[1:], key=lambda s: s[1])
+    info = dict(nmi_as_given=own, nmi_best_other=best, best_other=p_best.tolist())
+    if best > own + margin:
+        names = "xyz"
+        desc = ", ".join(f"scan {('-' if p_best[i, j] < 0 else '+')}{names[j]} -> atlas {names[i]}"
+                         for i in range(3) for j in range(3) if p_best[i, j] != 0)
+        codes = "".join(nib_axcodes(volume.affine))
+        raise ValueError(
+            f"`volume` looks mis-oriented: turned ({desc}) it matches the {atlas.name} atlas better (NMI "
+            f"{best:.3f}) than as its affine places it ({own:.3f}). The affine says the voxel axes point "
+            f"{codes} (RAS+ world). Check the header's sform/qform: open the scan in a viewer that uses it "
+            "(e.g. fsleyes, or nilearn.plotting.plot_anat) and confirm the nose points to +y (anterior) "
+            "and the top of the head to +z (superior); fix the header, or pass "
+            "SegmentConfig(check_registration=False) if the scan really is positioned like this."
+        )
+    return info
+
+
+def check_registration(summary: dict, volume: Volume) -> None:
+    """Raise a ValueError when an atlas registration looks like a mis-oriented scan (see SegmentConfig)."""
+    problems = []
+    if summary["det"] < 0:
+        problems.append("the best alignment mirrors the scan (left-right or another axis flipped)")
+    sc = summary["scales"]
+    if max(sc) > MAX_SCALE or min(sc) < MIN_SCALE:
+        problems.append(f"it scales the head by {min(sc):.2f}..{max(sc):.2f} (plausible {MIN_SCALE}..{MAX_SCALE})")
+    if summary["rotation_deg"] > MAX_ROTATION_DEG:
+        problems.append(f"it rotates the head by {summary['rotation_deg']:.0f} deg (plausible <= {MAX_ROTATION_DEG:g})")
+    if summary["nmi"] < MIN_NMI:
+        problems.append(f"the aligned atlas matches the scan poorly (NMI {summary['nmi']:.3f} < {MIN_NMI})")
+    if problems:
+        codes = "".join(nib_axcodes(volume.affine))
+        raise ValueError(
+            "`volume` looks mis-oriented: the atlas registration ended implausibly: " + "; ".join(problems) + ". "
+            f"Its affine says the voxel axes point {codes} (RAS+ world). Check the affine: open the scan in a "
+            "viewer that uses it (e.g. fsleyes, or nilearn.plotting.plot_anat) and confirm the nose points "
+            "to +y (anterior) and the top of the head to +z (superior); fix the header (e.g. nibabel "
+            "as_closest_canonical does not fix a wrong header, reorient or correct the sform/qform) or pass "
+            "SegmentConfig(check_registration=False) if the scan really is this unusual."
+        )
+
+
+def check_label_map(labels: LabelMap, volume: Volume, name: str = "labels") -> None:
+    """Raise a ValueError unless a label map lies on the scan's grid (same shape and affine).
+
+    A label map with another affine is another image's: comparing or combining it voxel by voxel with
+    this scan would mix up anatomy.
+    """
+    if not isinstance(labels, LabelMap):
+        raise ValueError(f"`{name}` must be a LabelMap, got {type(labels).__name__}.")
+    if labels.shape != volume.shape:
+        raise ValueError(
+            f"`{name}` has shape {labels.shape} but the scan is {volume.shape}; resample the label map onto "
+            "the scan's grid (nearest neighbour) or pass the label map made from this scan."
+        )
+    if not np.allclose(labels.affine, volume.affine, atol=1e-3):
+        raise ValueError(
+            f"`{name}` has a different affine from the scan's (max difference "
+            f"{np.abs(labels.affine - volume.affine).max():.3g} mm):\n{np.round(labels.affine, 3)}\nvs\n"
+            f"{np.round(volume.affine, 3)}.\nThe label map belongs to another grid or orientation; resample it "
+            "onto the scan's grid (nearest neighbour), or fix whichever header is wrong."
+        )
+
+
+def dice_scores(labels: LabelMap, truth: LabelMap) -> dict[str, float]:
+    """Dice overlap per tissue (brain, csf, skull, scalp) of two label maps on the same grid.
+
+    Arguments:
+        labels: e.g. `Segmentation.labels`.
+        truth: the reference LabelMap (same shape and affine, else a ValueError).
+    Returns:
+        {tissue name: Dice in [0, 1]} (1 where neither map has the tissue).
+    """
+    check_label_map(truth, Volume(np.zeros(labels.shape), labels.affine), "truth")
+    out = {}
+    for t in Tissue:
+        if t == Tissue.BACKGROUND:
+            continue
+        a, b = labels.labels == int(t), truth.labels == int(t)
+        s = int(a.sum() + b.sum())
+        out[t.name.lower()] = float(2 * (a & b).sum() / s) if s else 1.0
+    return out
 
 
 def register_atlas(volume: Volume, atlas: Atlas, cfg: SegmentConfig = SegmentConfig()):
@@ -337,10 +556,17 @@ def segment(volume: Volume, atlas: Atlas | None = None, cfg: SegmentConfig = Seg
     _check_inputs(volume, atlas, cfg)
     _dtype(cfg)
     if atlas is None:
-        atlas = default_atlas(cfg.modality, voxel_mm=cfg.atlas_voxel_mm, n_subjects=cfg.atlas_subjects)
+        atlas = default_atlas(cfg.modality, atlas=cfg.atlas, voxel_mm=cfg.atlas_voxel_mm,
+                              n_subjects=cfg.atlas_subjects)
     t0 = time.perf_counter()
+    orientation = check_orientation(volume, atlas) if cfg.check_registration else {}
     transform, priors = register_atlas(volume, atlas, cfg)
     priors.block_until_ready()
+    summary = {**registration_summary(volume, atlas, transform), **orientation}
+    log.info("registration to the %s atlas: scales %s, rotation %.1f deg, det %.3f, NMI %.4f", atlas.name,
+             np.round(summary["scales"], 3).tolist(), summary["rotation_deg"], summary["det"], summary["nmi"])
+    if cfg.check_registration:
+        check_registration(summary, volume)
     t1 = time.perf_counter()
     post, res, opts, coords = classify(volume, priors, cfg)
     t2 = time.perf_counter()
@@ -354,7 +580,8 @@ def segment(volume: Volume, atlas: Atlas | None = None, cfg: SegmentConfig = Seg
     params = jax.tree.map(np.asarray, res.params)
     return Segmentation(
         labels=labels, posteriors=post, transform=transform, params=params, component_class=opts.component_class,
-        bias_field=bias, n_iter=int(res.n_iter), converged=bool(res.converged),
+        bias_field=bias, n_iter=int(res.n_iter), converged=bool(res.converged), atlas_name=atlas.name,
+        registration=summary,
     )
 
 
