@@ -39,7 +39,7 @@ from .._files import atomic_write_path
 from ..phantom import make_head
 from ..plot import plot_image_cut, plot_mesh_cut, plot_overlay, plot_scalp_potential
 from ..protocol import load_voltages, protocol_from_config, save_voltages
-from ..segmentation import segment
+from ..segmentation import dice_scores, segment
 from ..tissue import TISSUES, Tissue, sigma_per_tet
 from .config import RunConfig
 from .declare import stage
@@ -79,26 +79,21 @@ def run_input(cfg: RunConfig, subject: Subject) -> dict:
 @stage(config=("segment",), reads=("input",))
 def run_segment(cfg: RunConfig, subject: Subject) -> dict:
     """Atlas registration + EM/MRF segmentation into brain, CSF, skull, scalp (and Dice vs truth)."""
-
-
-
     volume = io.load_volume(subject.file("input", "scan.nii.gz"))
     seg_cfg = dataclasses.replace(cfg.segment, modality=subject.modality)
     seg = segment(volume, None, seg_cfg)
     out = subject.dir("segment")
     io.save_labels(seg.labels, out / "labels.nii.gz")
     plot_overlay(volume, seg.labels, out / "segmentation.png",
-                 title=f"{subject.name}: {subject.modality.upper()} segmentation")
-    summary = {"voxels": {t.name.lower(): int((seg.labels.labels == int(t)).sum()) for t in TISSUES}}
+                 title=f"{subject.name}: {subject.modality.upper()} segmentation ({seg.atlas_name} atlas)")
+    summary = {"atlas": seg.atlas_name, "registration": seg.registration,
+               "voxels": {t.name.lower(): int((seg.labels.labels == int(t)).sum()) for t in TISSUES}}
     truth_path = subject.file("input", "labels.nii.gz")
     if truth_path.exists():
-        truth = io.load_labels(truth_path).labels
-        dice = {}
-        for t in TISSUES:
-            a, b = seg.labels.labels == int(t), truth == int(t)
-            dice[t.name.lower()] = float(2 * (a & b).sum() / max(a.sum() + b.sum(), 1))
+        dice = dice_scores(seg.labels, io.load_labels(truth_path))  # a truth on another grid is an error
         summary["dice_vs_truth"] = dice
-        _write_text(out / "dice.txt", "".join(f"{k:<6} {v:.4f}\n" for k, v in dice.items()))
+        _write_text(out / "dice.txt", f"atlas  {seg.atlas_name}\n"
+                    + "".join(f"{k:<6} {v:.4f}\n" for k, v in dice.items()))
     return summary
 
 
