@@ -47,7 +47,6 @@ towards removing diagonal-only contacts and tunnels: both make non-manifold surf
 """
 
 import logging
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
@@ -55,7 +54,7 @@ from typing import Literal
 import numpy as np
 from scipy import ndimage as ndi
 
-from ..tissue import TISSUES, Tissue
+from ..tissue import TISSUES, Tissue, per_tissue
 from ..volume import LabelMap
 
 log = logging.getLogger(__name__)
@@ -67,41 +66,6 @@ RULES: tuple[str, ...] = ("fov", "closing", "ventricles", "holes", "components",
 _CROSS = ndi.generate_binary_structure(3, 1)  # 6-connectivity
 _CUBE = np.ones((3, 3, 3), dtype=bool)  # 26-neighbourhood (the paper's 3x3x3)
 _SHELLS = (Tissue.CSF, Tissue.SKULL, Tissue.SCALP)
-
-
-def _per_tissue(value, name: str, allowed=TISSUES, *, allow_none: bool = False) -> dict[Tissue, float | None]:
-    """A number or a mapping keyed by tissue name/value -> {Tissue: value} over `allowed`."""
-    if value is None:
-        if not allow_none:
-            raise ValueError(f"`{name}` is None; give a number (mm) or a mapping per tissue.")
-        return {t: None for t in allowed}
-    if isinstance(value, Mapping):
-        out: dict[Tissue, float | None] = {t: None for t in allowed}
-        for key, v in value.items():
-            try:
-                t = Tissue.parse(key)
-            except ValueError as e:
-                raise ValueError(f"`{name}` has key {key!r}: {e}") from None
-            if t not in allowed:
-                raise ValueError(
-                    f"`{name}` has key {key!r}; allowed keys are "
-                    f"{[a.name.lower() for a in allowed]}.")
-            out[t] = v
-        if not allow_none and any(v is None for v in out.values()):
-            missing = [t.name.lower() for t, v in out.items() if v is None]
-            raise ValueError(f"`{name}` is missing tissues {missing}; give a value for each of "
-                             f"{[a.name.lower() for a in allowed]} or a single number.")
-    else:
-        out = {t: value for t in allowed}
-    for t, v in out.items():
-        if v is None:
-            continue
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-            raise ValueError(f"`{name}[{t.name.lower()}]` must be a number, got {v!r}.")
-        if not math.isfinite(v) or v < 0:
-            raise ValueError(f"`{name}[{t.name.lower()}]` must be finite and >= 0, got {v!r}.")
-        out[t] = float(v)
-    return out
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -142,9 +106,9 @@ class LayerConfig:
             raise ValueError(f"`max_tunnel_voxels` must be an integer in 1..16, got "
                              f"{self.max_tunnel_voxels!r}.")
         if self.closing_radius_mm is not None:
-            _per_tissue(self.closing_radius_mm, "closing_radius_mm")
+            per_tissue(self.closing_radius_mm, "closing_radius_mm", positive=False)
         if self.min_thickness_mm is not None:
-            _per_tissue(self.min_thickness_mm, "min_thickness_mm", _SHELLS, allow_none=True)
+            per_tissue(self.min_thickness_mm, "min_thickness_mm", allowed=_SHELLS, allow_none=True, positive=False)
         if self.ventricles not in ("brain", "keep"):
             raise ValueError(f"`ventricles` = {self.ventricles!r}; choose 'brain' or 'keep'.")
 
@@ -153,12 +117,12 @@ class LayerConfig:
         if self.closing_radius_mm is None:
             r = max(2.0, float(np.max(voxel_mm)))
             return {t: r for t in TISSUES}
-        return _per_tissue(self.closing_radius_mm, "closing_radius_mm")
+        return per_tissue(self.closing_radius_mm, "closing_radius_mm", positive=False)
 
     def thicknesses(self, voxel_mm) -> dict[Tissue, float]:
         """Minimum thickness per shell (CSF, SKULL, SCALP) in mm for this voxel size."""
         one_voxel = float(np.max(voxel_mm))
-        given = _per_tissue(self.min_thickness_mm, "min_thickness_mm", _SHELLS, allow_none=True)
+        given = per_tissue(self.min_thickness_mm, "min_thickness_mm", allowed=_SHELLS, allow_none=True, positive=False)
         return {t: (one_voxel if v is None else v) for t, v in given.items()}
 
 

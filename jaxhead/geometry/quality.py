@@ -41,7 +41,6 @@ branch) instead of NaN.
 
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 
 import equinox as eqx
@@ -49,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._files import atomic_write_path
 from .._types import Array, Nodes, Tets
 from ..tissue import TISSUES
 from .tetmesh import TetMesh
@@ -565,14 +565,7 @@ def _write_histograms(
         ax.legend(fontsize="small")
         fig.tight_layout()
         path = os.path.join(png_dir, f"quality_{m}.png")
-        fd, tmp = tempfile.mkstemp(prefix=f".quality_{m}.", suffix=".png", dir=png_dir)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                fig.savefig(f, format="png", dpi=100)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_write_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=100)
         paths.append(path)
     return tuple(paths)

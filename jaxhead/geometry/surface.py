@@ -55,7 +55,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
-from ..tissue import TISSUES, Tissue
+from ..tissue import TISSUES, Tissue, per_tissue
 from ..volume import LabelMap
 
 log = logging.getLogger(__name__)
@@ -100,29 +100,6 @@ class Surface(eqx.Module):
 _DEFAULT_EDGE_MM = {"brain": 6.0, "csf": 4.0, "skull": 4.5, "scalp": 6.0}
 
 
-def _per_tissue(value, name: str) -> dict[Tissue, float]:
-    """A positive number or a complete mapping keyed by tissue name/value -> {Tissue: float}."""
-    if isinstance(value, Mapping):
-        out = {}
-        for key, v in value.items():
-            try:
-                out[Tissue.parse(key)] = v
-            except ValueError as e:
-                raise ValueError(f"`{name}` has key {key!r}: {e}") from None
-        missing = [t.name.lower() for t in TISSUES if t not in out]
-        if missing or Tissue.BACKGROUND in out:
-            raise ValueError(f"`{name}` needs exactly the keys brain, csf, skull, scalp; "
-                             f"missing {missing}.")
-    else:
-        out = {t: value for t in TISSUES}
-    for t, v in out.items():
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
-                or not math.isfinite(v) or v <= 0:
-            raise ValueError(f"`{name}[{t.name.lower()}]` must be a positive number (mm), got {v!r}.")
-        out[t] = float(v)
-    return {t: out[t] for t in TISSUES}
-
-
 @dataclass(frozen=True, kw_only=True)
 class SurfaceConfig:
     """Settings of :func:`extract_surfaces`.
@@ -157,7 +134,7 @@ class SurfaceConfig:
     check_self_intersections: bool = True
 
     def __post_init__(self):
-        _per_tissue(self.edge_mm, "edge_mm")
+        per_tissue(self.edge_mm, "edge_mm")
         if self.remesh not in ("isotropic", "decimate"):
             raise ValueError(f"`remesh` = {self.remesh!r}; choose 'isotropic' or 'decimate'.")
         for name in ("remesh_iterations", "taubin_iterations", "max_gap_iterations"):
@@ -177,7 +154,7 @@ class SurfaceConfig:
 
     def edges(self) -> dict[Tissue, float]:
         """Target edge length per tissue (mm)."""
-        return _per_tissue(self.edge_mm, "edge_mm")
+        return per_tissue(self.edge_mm, "edge_mm")
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ import numpy as np
 from scipy.ndimage import minimum_filter
 from scipy.spatial import cKDTree
 
-from ..tissue import TISSUES, Tissue
+from ..tissue import TISSUES, Tissue, per_tissue
 from .improve import improve_mesh
 from .mesher_gmsh import mesh_gmsh
 from .mesher_tetgen import mesh_tetgen
@@ -86,31 +86,6 @@ def choose_mesher(mesher: str) -> str:
         raise ValueError(f"`mesher` = {mesher!r} but its package ({_MODULES[mesher]}) is not installed: "
                          f"{_EXTRAS[mesher]}, or use mesher='auto' (available here: {list(have)}).")
     return mesher
-
-
-def _per_tissue_mm(value, name: str) -> dict[Tissue, float]:
-    """A positive number, or a mapping keyed by every tissue (name or Tissue) -> {Tissue: mm}."""
-    if isinstance(value, Mapping):
-        out = {}
-        for key, v in value.items():
-            try:
-                t = Tissue.parse(key)
-            except ValueError as e:
-                raise ValueError(f"`{name}` has key {key!r}: {e}") from None
-            if t == Tissue.BACKGROUND:
-                raise ValueError(f"`{name}` has key {key!r}; use brain, csf, skull, scalp.")
-            out[t] = v
-        missing = [t.name.lower() for t in TISSUES if t not in out]
-        if missing:
-            raise ValueError(f"`{name}` lacks {missing}; give all of brain, csf, skull, scalp "
-                             "or a single number for all.")
-    else:
-        out = {t: value for t in TISSUES}
-    for t, v in out.items():
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
-                or not math.isfinite(v) or v <= 0:
-            raise ValueError(f"`{name}[{t.name.lower()}]` must be a positive number of mm, got {v!r}.")
-    return {t: float(out[t]) for t in TISSUES}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -176,7 +151,7 @@ class MeshConfig:
     threads: int = 0
 
     def __post_init__(self):
-        _per_tissue_mm(self.edge_mm, "edge_mm")
+        per_tissue(self.edge_mm, "edge_mm")
         pts = np.asarray(self.refine_points_mm, dtype=np.float64) if len(self.refine_points_mm) \
             else np.zeros((0, 3))
         if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
@@ -210,7 +185,7 @@ class MeshConfig:
 
     def edges(self) -> dict[Tissue, float]:
         """Target edge length per tissue (mm), keyed BRAIN, CSF, SKULL, SCALP."""
-        return _per_tissue_mm(self.edge_mm, "edge_mm")
+        return per_tissue(self.edge_mm, "edge_mm")
 
 
 @dataclass(frozen=True)

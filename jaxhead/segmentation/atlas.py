@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 from pathlib import Path
 from typing import Literal, Sequence
 
 import equinox as eqx
 import numpy as np
 
+from .._files import atomic_write_path
 from ..phantom import make_population
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, check_affine
@@ -112,21 +112,15 @@ class Atlas(eqx.Module):
         return Volume(self.template, self.affine)
 
     def save(self, path) -> Path:
-        """Write the atlas to an .npz file atomically (temp file in the same folder, then os.replace)."""
+        """Write the atlas to an .npz file atomically (`jaxhead.io.atomic_write_path`)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp.npz")
-        os.close(fd)
-        try:
+        with atomic_write_path(path) as tmp:
             np.savez_compressed(
                 tmp, template=self.template.astype(np.float32), priors=self.priors.astype(np.float16),
                 affine=self.affine, modality=np.array(self.modality), n_subjects=np.array(self.n_subjects),
                 version=np.array(ATLAS_VERSION), name=np.array(self.name),
             )
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
         return path
 
     @classmethod
