@@ -1,5 +1,7 @@
 """TSVD/Tikhonov against naive dense solutions, parameter rules, grids and image metrics."""
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
@@ -303,3 +305,13 @@ def test_noise_std_floor():
                                0.005 * np.maximum(np.abs(v), 0.1 * rms))
     with pytest.raises(ValueError, match="floor"):
         noise_std(v, 0.5, floor=-1)
+
+
+def test_per_tet_jacobian_warns_and_names_the_grid_path():
+    rng = np.random.default_rng(0)
+    J = rng.standard_normal((10, 300))  # 30 columns per row: a per-tet Jacobian's shape
+    with pytest.warns(UserWarning, match="jacobian_grid"):
+        reconstruct(J, J @ rng.standard_normal(300), TSVD(k=3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        reconstruct(J[:, :100], J[:, :100] @ rng.standard_normal(100), TSVD(k=3))  # a grid's shape
