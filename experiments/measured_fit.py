@@ -80,7 +80,7 @@ def main():
     t0 = time.time()
     mesh = head_mesh(pathlib.Path(args.mesh))
     rng = np.random.default_rng(args.seed)
-    el = place_electrodes(mesh, NAMES, radius_mm=6.0, contact_impedance=Z0)
+    el = place_electrodes(mesh, NAMES, radius_mm=6.0, contact_impedance_ohm_m2=Z0)
     model = build_forward_model(mesh, el)
     n = len(NAMES)
     ref = n - 1
@@ -90,7 +90,7 @@ def main():
     sigma_true = default_sigma() * np.array([1.08, 0.99, 1.15, 0.93])
     z_true = Z0 * np.exp(rng.normal(0.0, np.log(2.0), n))  # lognormal, factor-2 spread
     gain_true = 1.10
-    v = np.asarray(simulate(model, sigma_true, prot, contact_impedance=z_true))
+    v = np.asarray(simulate(model, sigma_true, prot, contact_impedance_ohm_m2=z_true))
     off_true = rng.normal(0.0, 0.3 * np.sqrt(np.mean(v**2)), prot.n_inj)
     clean = gain_true * v + off_true[prot.drive_index]
     noisy = clean + rng.standard_normal(v.shape) * 0.005 * np.abs(clean)
@@ -119,7 +119,7 @@ def main():
              **{f"z:{nm}": z for nm, z in zip(NAMES, z_true)}}
     z_stat = {k: (est[k] - truth[k]) / se[k] for k in res.fitted}
     carrying = sorted(set(inj.ravel().tolist()))
-    z_err = np.array([res.contact_impedance[i] / z_true[i] - 1 for i in carrying])
+    z_err = np.array([res.contact_impedance_ohm_m2[i] / z_true[i] - 1 for i in carrying])
     rejected = set(res.rejected.tolist())
     report = {
         "mesh_tets": int(mesh.n_tets), "rows": int(prot.n_rows), "injections": int(prot.n_inj),
@@ -132,7 +132,7 @@ def main():
                                    - 1).tolist(),
         "z_rel_error_current_carrying_max": float(np.max(np.abs(z_err))),
         "z_rel_error_current_carrying_median": float(np.median(np.abs(z_err))),
-        "z_reference_rel_error": float(res.contact_impedance[ref] / z_true[ref] - 1),
+        "z_reference_rel_error": float(res.contact_impedance_ohm_m2[ref] / z_true[ref] - 1),
         "z_reference_rel_se": float(se[f"z:{NAMES[ref]}"] / est[f"z:{NAMES[ref]}"]),
         "corrupted": bad.tolist(), "rejected": sorted(rejected),
         "corrupted_missed": sorted(set(bad.tolist()) - rejected),

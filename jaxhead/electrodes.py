@@ -44,7 +44,7 @@ class Electrodes(eqx.Module):
         faces: (n_eface, 3) int64 node indices of the mesh boundary faces under the electrodes,
             counter-clockwise seen from outside (as `TetMesh.boundary_faces`).
         face_electrode: (n_eface,) int64 electrode index 0..n_elec-1 of each face.
-        contact_impedance: (n_elec,) contact impedance in Ohm m^2 (float64, > 0).
+        contact_impedance_ohm_m2: (n_elec,) contact impedance in Ohm m^2 (float64, > 0).
         names: electrode names, one per electrode.
         face_areas_mm2: optional (n_eface,) face areas in mm^2 at placement time, so that
             `area_mm2()` works without the mesh.
@@ -53,25 +53,25 @@ class Electrodes(eqx.Module):
     centres: np.ndarray
     faces: np.ndarray
     face_electrode: np.ndarray
-    contact_impedance: np.ndarray
+    contact_impedance_ohm_m2: np.ndarray
     names: tuple[str, ...] = eqx.field(static=True, default=())
     face_areas_mm2: np.ndarray | None = None
 
-    def __init__(self, centres, faces, face_electrode, contact_impedance, names=(),
+    def __init__(self, centres, faces, face_electrode, contact_impedance_ohm_m2, names=(),
                  face_areas_mm2=None):
         self.centres = np.asarray(centres, dtype=np.float64)
         self.faces = np.asarray(faces, dtype=np.int64)
         self.face_electrode = np.asarray(face_electrode, dtype=np.int64)
         n_elec = self.centres.shape[0] if self.centres.ndim == 2 else 0
-        if _is_tracer(contact_impedance) or isinstance(contact_impedance, jax.Array):
-            z = contact_impedance
+        if _is_tracer(contact_impedance_ohm_m2) or isinstance(contact_impedance_ohm_m2, jax.Array):
+            z = contact_impedance_ohm_m2
             if getattr(z, "ndim", 1) == 0:
                 z = z * jax.numpy.ones(n_elec)
         else:
-            z = np.asarray(contact_impedance, dtype=np.float64)
+            z = np.asarray(contact_impedance_ohm_m2, dtype=np.float64)
             if z.ndim == 0:
                 z = np.full(n_elec, float(z))
-        self.contact_impedance = z
+        self.contact_impedance_ohm_m2 = z
         if not names:
             names = tuple(f"E{i + 1}" for i in range(n_elec))
         self.names = tuple(str(n) for n in names)
@@ -107,16 +107,16 @@ class Electrodes(eqx.Module):
             raise ValueError(f"`names` has {len(self.names)} entries for {n} electrodes.")
         if len(set(self.names)) != n:
             raise ValueError(f"`names` has duplicates: {self.names}.")
-        z = self.contact_impedance
+        z = self.contact_impedance_ohm_m2
         if getattr(z, "shape", None) != (n,):
             raise ValueError(
-                f"`contact_impedance` has shape {getattr(z, 'shape', None)}; give one value or "
+                f"`contact_impedance_ohm_m2` has shape {getattr(z, 'shape', None)}; give one value or "
                 f"one per electrode ({n},), in Ohm m^2.")
         if not _is_tracer(z):
             zn = np.asarray(z)
             if not np.all(np.isfinite(zn)) or not np.all(zn > 0):
                 raise ValueError(
-                    f"`contact_impedance` must be finite and > 0 Ohm m^2, got {zn[:10]}; typical "
+                    f"`contact_impedance_ohm_m2` must be finite and > 0 Ohm m^2, got {zn[:10]}; typical "
                     "scalp electrodes are 1e-3..1e-1 Ohm m^2.")
         if self.face_areas_mm2 is not None and self.face_areas_mm2.shape != (f.shape[0],):
             raise ValueError(
@@ -275,7 +275,7 @@ def place_electrodes(
     positions,
     *,
     radius_mm=5.0,
-    contact_impedance=DEFAULT_CONTACT_IMPEDANCE_OHM_M2,
+    contact_impedance_ohm_m2=DEFAULT_CONTACT_IMPEDANCE_OHM_M2,
     names=None,
     landmarks=None,
     max_distance_mm: float = 10.0,
@@ -299,7 +299,7 @@ def place_electrodes(
               electrodes are named except a few digitised ones);
             - an int: that many electrodes spread over the upper head (`spread_positions`).
         radius_mm: electrode radius in mm, one value or (n_elec,).
-        contact_impedance: contact impedance in Ohm m^2, one value or (n_elec,). Default
+        contact_impedance_ohm_m2: contact impedance in Ohm m^2, one value or (n_elec,). Default
             0.02 Ohm m^2: McEwan et al. 2006 (Physiol. Meas. 27:S199, UCLH Mk2.5 head EIT)
             measured 300 Ohm - 2.7 kOhm per scalp electrode over 20 Hz - 256 kHz; over a
             10 mm-diameter EEG cup (0.785 cm^2) that is 0.024 - 0.21 Ohm m^2, the low end at
@@ -363,7 +363,7 @@ def place_electrodes(
         if names is not None and len(names) != n_pos:
             raise ValueError(f"`names` has {len(names)} entries for {n_pos} positions.")
     radius = _per_electrode(radius_mm, n_pos, "radius_mm", "mm")
-    z = _per_electrode(contact_impedance, n_pos, "contact_impedance", "Ohm m^2")
+    z = _per_electrode(contact_impedance_ohm_m2, n_pos, "contact_impedance_ohm_m2", "Ohm m^2")
 
     scalp = _Scalp(mesh)
     if kind == "layout":
@@ -415,7 +415,7 @@ def place_electrodes(
             f"electrodes share scalp faces: {pairs[:10]}; they touch on this mesh. Move them "
             "apart, reduce radius_mm or refine the scalp mesh under them.")
     return Electrodes(centres=centres, faces=scalp.mesh_faces[fidx], face_electrode=fe,
-                      contact_impedance=z, names=names, face_areas_mm2=scalp.areas[fidx])
+                      contact_impedance_ohm_m2=z, names=names, face_areas_mm2=scalp.areas[fidx])
 
 
 def _check_overlap(centres: np.ndarray, radius: np.ndarray, names) -> None:
@@ -849,7 +849,7 @@ def electrodes_from_config(mesh: TetMesh, cfg: ElectrodeConfig = ElectrodeConfig
     """Place electrodes on a mesh as an `ElectrodeConfig` says (see `place_electrodes`)."""
     layout = cfg.layout if isinstance(cfg.layout, (str, int)) else list(cfg.layout)
     return place_electrodes(
-        mesh, layout, radius_mm=cfg.radius_mm, contact_impedance=cfg.contact_impedance_ohm_m2,
+        mesh, layout, radius_mm=cfg.radius_mm, contact_impedance_ohm_m2=cfg.contact_impedance_ohm_m2,
         landmarks=None if cfg.landmarks_mm is None else dict(cfg.landmarks_mm),
         max_distance_mm=cfg.max_distance_mm)
 

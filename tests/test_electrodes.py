@@ -101,21 +101,21 @@ def _analytic_ten_ten():
 
 def _simple():
     return dict(centres=np.zeros((2, 3)), faces=np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4]]),
-                face_electrode=np.array([0, 0, 1]), contact_impedance=0.01)
+                face_electrode=np.array([0, 0, 1]), contact_impedance_ohm_m2=0.01)
 
 
 def test_electrodes_type_basics():
     e = Electrodes(**_simple())
     assert e.n_elec == 2
     assert e.names == ("E1", "E2")
-    np.testing.assert_array_equal(e.contact_impedance, [0.01, 0.01])
+    np.testing.assert_array_equal(e.contact_impedance_ohm_m2, [0.01, 0.01])
     nodes = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [2, 2, 0.0]])
     np.testing.assert_allclose(e.area_mm2(nodes), [1.0, 0.5])
     with pytest.raises(ValueError, match="area_mm2"):
         e.area_mm2()
     # a pytree: contact impedance can be swapped and traced
-    e2 = eqx.tree_at(lambda x: x.contact_impedance, e, jnp.array([0.02, 0.03]))
-    f = jax.jit(lambda el: jnp.sum(el.contact_impedance))
+    e2 = eqx.tree_at(lambda x: x.contact_impedance_ohm_m2, e, jnp.array([0.02, 0.03]))
+    f = jax.jit(lambda el: jnp.sum(el.contact_impedance_ohm_m2))
     assert float(f(e2)) == pytest.approx(0.05)
 
 
@@ -126,9 +126,9 @@ def test_electrodes_type_basics():
     (dict(face_electrode=np.array([0, 0])), "one electrode index per face"),
     (dict(face_electrode=np.array([0, 0, 2])), "0-based electrode"),
     (dict(face_electrode=np.array([0, 0, 0])), r"electrodes \[1\] have no faces"),
-    (dict(contact_impedance=-1.0), "contact_impedance"),
-    (dict(contact_impedance=np.array([0.01, np.nan])), "contact_impedance"),
-    (dict(contact_impedance=np.array([0.01, 0.01, 0.01])), "contact_impedance"),
+    (dict(contact_impedance_ohm_m2=-1.0), "contact_impedance_ohm_m2"),
+    (dict(contact_impedance_ohm_m2=np.array([0.01, np.nan])), "contact_impedance_ohm_m2"),
+    (dict(contact_impedance_ohm_m2=np.array([0.01, 0.01, 0.01])), "contact_impedance_ohm_m2"),
     (dict(names=("a",)), "names"),
     (dict(names=("a", "a")), "duplicates"),
 ])
@@ -146,7 +146,7 @@ def test_positions_projected_onto_scalp(mesh, face_size):
     dirs = np.array([[0, 0, 1.0], [1, 0, 0], [0, -1, 0.2], [-0.5, 0.5, 0.7]])
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     radius = 10.0
-    e = place_electrodes(mesh, dirs * (R + 5.0), radius_mm=radius, contact_impedance=0.01)
+    e = place_electrodes(mesh, dirs * (R + 5.0), radius_mm=radius, contact_impedance_ohm_m2=0.01)
     r = np.linalg.norm(e.centres, axis=1)
     # on the polyhedral sphere: between the inscribed face planes and R (sagitta <= s^2 / 2R)
     assert np.all(r <= R + 1e-9) and np.all(r >= R - face_size**2 / (2 * R) - 1e-9)
@@ -164,18 +164,18 @@ def test_positions_projected_onto_scalp(mesh, face_size):
     # round: every face centroid within a face size of the rim
     d = np.linalg.norm(cen - e.centres[e.face_electrode], axis=1)
     assert np.all(d <= radius + face_size)
-    np.testing.assert_array_equal(e.contact_impedance, 0.01)
+    np.testing.assert_array_equal(e.contact_impedance_ohm_m2, 0.01)
     assert e.names == ("E1", "E2", "E3", "E4")
 
 
 def test_per_electrode_radius_and_impedance(mesh):
     pos = np.array([[0, 0, R], [R, 0, 0]])
-    e = place_electrodes(mesh, pos, radius_mm=[8.0, 16.0], contact_impedance=[0.01, 0.05],
+    e = place_electrodes(mesh, pos, radius_mm=[8.0, 16.0], contact_impedance_ohm_m2=[0.01, 0.05],
                          names=["a", "b"])
     a = e.area_mm2()
     np.testing.assert_allclose(a, np.pi * np.array([8.0, 16.0]) ** 2,
                                atol=0.5 * max_face_area(mesh))
-    np.testing.assert_array_equal(e.contact_impedance, [0.01, 0.05])
+    np.testing.assert_array_equal(e.contact_impedance_ohm_m2, [0.01, 0.05])
     assert e.names == ("a", "b")
 
 
@@ -214,7 +214,7 @@ def test_far_position_is_an_error(mesh):
     (dict(positions=np.zeros((3, 2))), "positions"),
     (dict(positions=np.zeros((2, 3)) + np.nan), "NaN"),
     (dict(positions=np.array([[0, 0, R]]), radius_mm=-1.0), "radius_mm"),
-    (dict(positions=np.array([[0, 0, R]]), contact_impedance=0.0), "contact_impedance"),
+    (dict(positions=np.array([[0, 0, R]]), contact_impedance_ohm_m2=0.0), "contact_impedance_ohm_m2"),
     (dict(positions=np.array([[0, 0, R]]), names=["a", "b"]), "names"),
     (dict(positions="10-30"), "unknown layout"),
     (dict(positions=["Cz", "Xy9"]), "unknown electrode names"),
@@ -337,11 +337,11 @@ def test_electrode_config(mesh):
                           contact_impedance_ohm_m2=0.05, landmarks_mm=LANDMARKS)
     e = electrodes_from_config(mesh, cfg)
     assert e.names == ("Cz", "T7", "T8")
-    np.testing.assert_array_equal(e.contact_impedance, 0.05)
+    np.testing.assert_array_equal(e.contact_impedance_ohm_m2, 0.05)
     np.testing.assert_allclose(e.centres[0], [0, 0, R], atol=0.5)
     for kw, match in ((dict(layout="10-30"), "unknown layout"), (dict(layout=0), "positive int"),
                       (dict(radius_mm=0.0), "radius_mm"),
-                      (dict(contact_impedance_ohm_m2=float("nan")), "contact_impedance"),
+                      (dict(contact_impedance_ohm_m2=float("nan")), "contact_impedance_ohm_m2"),
                       (dict(landmarks_mm={"nasion": (0, 1, 0)}), "lacks")):
         with pytest.raises(ValueError, match=match):
             ElectrodeConfig(**kw)

@@ -29,14 +29,14 @@ def small_model(h_mm=32.0, n_elec=6, z=0.02, seed=0):
     pos = np.stack([np.cos(t), np.sin(t), 0.5 + 0.1 * rng.standard_normal(n_elec)], 1)
     pos = 96.0 * pos / np.linalg.norm(pos, axis=1, keepdims=True)
     zs = z * (1.0 + 0.5 * rng.random(n_elec))  # distinct impedances catch index mix-ups
-    elec = place_electrodes(mesh, pos, radius_mm=20.0, contact_impedance=zs)
+    elec = place_electrodes(mesh, pos, radius_mm=20.0, contact_impedance_ohm_m2=zs)
     return mesh, elec
 
 
 def dense_reference(mesh, elec, sigma_tet):
     """The full (ungrounded) CEM matrix of nodes + electrodes by a per-element loop (SI)."""
     x = mesh.nodes * 1e-3
-    n, L = mesh.n_nodes, elec.contact_impedance.shape[0]
+    n, L = mesh.n_nodes, elec.contact_impedance_ohm_m2.shape[0]
     A = np.zeros((n + L, n + L))
     for t, tet in enumerate(mesh.tets):
         M = np.hstack([np.ones((4, 1)), x[tet]])
@@ -50,7 +50,7 @@ def dense_reference(mesh, elec, sigma_tet):
         mids = np.array([[0.5, 0.5, 0.0], [0.0, 0.5, 0.5], [0.5, 0.0, 0.5]])
         mass = area / 3.0 * mids.T @ mids
         lin = area / 3.0 * mids.sum(0)
-        z = elec.contact_impedance[l]
+        z = elec.contact_impedance_ohm_m2[l]
         A[np.ix_(f, f)] += mass / z
         A[f, n + l] -= lin / z
         A[n + l, f] -= lin / z
@@ -124,7 +124,7 @@ def test_boundary_mass_sums_to_electrode_area(mesh_elec, model):
     values = np.asarray(assemble(model, np.full(4, 0.3)))
     full = np.zeros((model.n_unknowns, model.n_unknowns))
     full[np.asarray(A.rows), np.asarray(A.cols)] = values[np.asarray(A.to_upper)]
-    z = elec.contact_impedance
+    z = elec.contact_impedance_ohm_m2
     n = mesh.n_nodes
     for l in range(model.n_elec - 1):
         assert full[n + l, n + l] * z[l] == pytest.approx(per_elec[l], rel=1e-12)

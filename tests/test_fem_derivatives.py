@@ -75,13 +75,13 @@ def test_tet_sigma_adjoint_equals_ad_and_fd(setup):
 
 def test_contact_impedance_derivatives(setup):
     mesh, elec, model, protocol, w = setup
-    z = jnp.asarray(elec.contact_impedance)
-    f = eqx.filter_jit(lambda m, z: simulate(m, SIGMA, protocol, contact_impedance=z))
+    z = jnp.asarray(elec.contact_impedance_ohm_m2)
+    f = eqx.filter_jit(lambda m, z: simulate(m, SIGMA, protocol, contact_impedance_ohm_m2=z))
     Jz = eqx.filter_jit(jax.jacfwd(lambda m, z: simulate(m, SIGMA, protocol,
-                                                         contact_impedance=z), argnums=1))(
+                                                         contact_impedance_ohm_m2=z), argnums=1))(
         model, z)
     g = eqx.filter_jit(jax.grad(lambda m, z: w @ simulate(m, SIGMA, protocol,
-                                                         contact_impedance=z), argnums=1))(
+                                                         contact_impedance_ohm_m2=z), argnums=1))(
         model, z)
     np.testing.assert_allclose(np.asarray(g), np.asarray(w @ Jz), rtol=1e-10,
                                atol=1e-12 * float(jnp.abs(g).max()))

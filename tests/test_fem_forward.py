@@ -66,7 +66,7 @@ def test_electrode_equation_and_kirchhoff(mesh_elec, model):
         I = np.zeros(N_ELEC)
         I[s], I[t] = current, -current
         mean_u, area = _face_means(mesh, elec, u[k])
-        z = elec.contact_impedance
+        z = elec.contact_impedance_ohm_m2
         # U_l = mean u + z_l I_l / |e_l|: exact for every electrode, the ground included
         np.testing.assert_allclose(U[k], mean_u + z * I / area, rtol=0,
                                    atol=RTOL * np.abs(U[k]).max())
@@ -101,10 +101,10 @@ def test_reciprocity(model, mesh_elec):
 
 def test_scaling_with_conductivity_and_current(model, mesh_elec, protocol):
     _, elec = mesh_elec
-    z = elec.contact_impedance
+    z = elec.contact_impedance_ohm_m2
     v = np.asarray(simulate(model, SIGMA, protocol))
     c = 3.7
-    vc = np.asarray(simulate(model, c * SIGMA, protocol, contact_impedance=z / c))
+    vc = np.asarray(simulate(model, c * SIGMA, protocol, contact_impedance_ohm_m2=z / c))
     np.testing.assert_allclose(vc, v / c, rtol=RTOL, atol=RTOL * np.abs(v).max())
     v2 = np.asarray(simulate(model, SIGMA, Protocol(protocol.rows, 2 * protocol.current_a)))
     np.testing.assert_allclose(v2, 2 * v, rtol=RTOL, atol=RTOL * np.abs(v).max())
@@ -121,7 +121,7 @@ def test_ground_independence(mesh_elec, model, protocol):
     inv = np.argsort(perm)
     flipped = Electrodes(centres=elec.centres[perm], faces=elec.faces,
                          face_electrode=inv[elec.face_electrode],
-                         contact_impedance=elec.contact_impedance[perm])
+                         contact_impedance_ohm_m2=elec.contact_impedance_ohm_m2[perm])
     model2 = build_forward_model(mesh, flipped)
     v = np.asarray(simulate(model, SIGMA, protocol))
     v2 = np.asarray(simulate(model2, SIGMA, Protocol(inv[protocol.rows], protocol.current_a)))
@@ -195,10 +195,10 @@ def test_bad_inputs_raise(model, protocol, mesh_elec):
         simulate(model, SIGMA, Protocol(np.array([[0, 1, 2, N_ELEC]]), 1e-3))
     with pytest.raises(ValueError, match="nodes.*shape"):
         simulate(model, SIGMA, protocol, nodes=mesh.nodes[:-1])
-    with pytest.raises(ValueError, match="contact_impedance"):
-        simulate(model, SIGMA, protocol, contact_impedance=-np.ones(N_ELEC))
-    with pytest.raises(ValueError, match="contact_impedance.*shape"):
-        simulate(model, SIGMA, protocol, contact_impedance=np.ones(3))
+    with pytest.raises(ValueError, match="contact_impedance_ohm_m2"):
+        simulate(model, SIGMA, protocol, contact_impedance_ohm_m2=-np.ones(N_ELEC))
+    with pytest.raises(ValueError, match="contact_impedance_ohm_m2.*shape"):
+        simulate(model, SIGMA, protocol, contact_impedance_ohm_m2=np.ones(3))
     with pytest.raises(ValueError, match="injections"):
         potentials(model, SIGMA, np.array([[0, 0]]))
     with pytest.raises(ValueError, match="sum to zero"):
@@ -209,7 +209,7 @@ def test_bad_inputs_raise(model, protocol, mesh_elec):
         simulate(model, SIGMA, np.zeros((3, 4), int))
     bad_faces = Electrodes(centres=elec.centres, faces=mesh.tets[:len(elec.faces), :3],
                            face_electrode=elec.face_electrode,
-                           contact_impedance=elec.contact_impedance)
+                           contact_impedance_ohm_m2=elec.contact_impedance_ohm_m2)
     with pytest.raises(ValueError, match="outer boundary"):
         build_forward_model(mesh, bad_faces)
     # traced values: checked inside jit
@@ -235,14 +235,14 @@ def test_invariants_hold_for_every_solver(mesh_elec, protocol, name, solver, rto
     w = np.asarray(simulate(model, sigma, Protocol(rows[:, [2, 3, 0, 1]], 1e-3)))
     np.testing.assert_allclose(v, w, rtol=rtol, atol=rtol * np.abs(v).max())
     vc = np.asarray(simulate(model, 3.7 * sigma, Protocol(rows, 1e-3),
-                             contact_impedance=elec.contact_impedance / 3.7))
+                             contact_impedance_ohm_m2=elec.contact_impedance_ohm_m2 / 3.7))
     np.testing.assert_allclose(vc, v / 3.7, rtol=rtol, atol=rtol * np.abs(v).max())
     # dense reference: ground electrode 0 (drop its row and column), drive 1e-3 A from 0 to 3
     A = dense_reference(mesh, elec, sigma)
     n = mesh.n_nodes
-    keep = np.r_[0:n, n + 1:n + elec.contact_impedance.shape[0]]
+    keep = np.r_[0:n, n + 1:n + elec.contact_impedance_ohm_m2.shape[0]]
     b = np.zeros(A.shape[0])
     b[n + 3] = -1e-3  # current leaves through electrode 3; electrode 0 (ground) sources it
-    U = np.zeros(elec.contact_impedance.shape[0])
+    U = np.zeros(elec.contact_impedance_ohm_m2.shape[0])
     U[1:] = np.linalg.solve(A[np.ix_(keep, keep)], b[keep])[n:]
     np.testing.assert_allclose(v[0], U[5] - U[6], rtol=rtol, atol=rtol * np.abs(v).max())

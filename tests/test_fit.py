@@ -194,8 +194,8 @@ def test_free_offsets_fit_and_se_invariant_and_match_joint_fit(ref_model):
 def test_gain_is_a_scale_and_needs_an_anchor(ref_model, z_true):
     prot = reference_protocol(N_REF, N_REF - 1)
     # The invariant behind it: V(c sigma, z / c) = V(sigma, z) / c.
-    v1 = np.asarray(_simulate(ref_model, TRUE, prot, contact_impedance=z_true))
-    v2 = np.asarray(_simulate(ref_model, 2.5 * TRUE, prot, contact_impedance=z_true / 2.5))
+    v1 = np.asarray(_simulate(ref_model, TRUE, prot, contact_impedance_ohm_m2=z_true))
+    v2 = np.asarray(_simulate(ref_model, 2.5 * TRUE, prot, contact_impedance_ohm_m2=z_true / 2.5))
     np.testing.assert_allclose(v2, v1 / 2.5, rtol=1e-9)
     with pytest.raises(ValueError, match="only up to the gain"):
         fit_conductivities(ref_model, prot, v1, init=default_sigma(), gain=True)
@@ -217,13 +217,13 @@ def test_gain_is_a_scale_and_needs_an_anchor(ref_model, z_true):
 def test_per_electrode_contact_impedances(ref_model, z_true):
     # Only current-carrying electrodes see their contact impedance directly: measure them.
     prot = reference_protocol(N_REF, N_REF - 1, include_injecting=True)
-    v = np.asarray(_simulate(ref_model, TRUE, prot, contact_impedance=z_true))
+    v = np.asarray(_simulate(ref_model, TRUE, prot, contact_impedance_ohm_m2=z_true))
     res = fit_conductivities(ref_model, prot, v, init=default_sigma(), noise_std=1e-4 * np.abs(v),
                              contact_impedance="per_electrode", contact_prior=2.0,
                              offsets="per_injection")
     carrying = np.unique(prot.injections)
     assert N_REF - 1 not in carrying
-    np.testing.assert_allclose(res.contact_impedance[carrying], z_true[carrying], rtol=1e-3)
+    np.testing.assert_allclose(res.contact_impedance_ohm_m2[carrying], z_true[carrying], rtol=1e-3)
     np.testing.assert_allclose(res.sigma, TRUE, rtol=1e-3)
     names = [f"z:{n}" for n in ref_model.electrode_names]
     assert list(res.fitted[4:]) == names

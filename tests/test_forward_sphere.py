@@ -42,7 +42,7 @@ MAG_MAX = 0.05
 def _mesh_model(h_mm):
     mesh = structured_sphere_mesh(RADII_MM, h_mm=h_mm)
     elec = place_electrodes(mesh, N_ELEC, landmarks=LANDMARKS, radius_mm=RADIUS_MM,
-                            contact_impedance=Z_UNIFORM)
+                            contact_impedance_ohm_m2=Z_UNIFORM)
     return mesh, elec, build_forward_model(mesh, elec)
 
 
@@ -93,7 +93,7 @@ def test_homogeneous_sphere(model12, protocol):
 @pytest.mark.parametrize("z", [Z_UNIFORM, DEFAULT_CONTACT_IMPEDANCE_OHM_M2])
 def test_four_shell_sphere(model12, protocol, z):
     _, elec, model = model12
-    v = np.asarray(simulate(model, SIGMA_4, protocol, contact_impedance=z))
+    v = np.asarray(simulate(model, SIGMA_4, protocol, contact_impedance_ohm_m2=z))
     ref = analytic_voltages(elec, protocol, RADII_MM, SIGMA_4)
     assert rdm(v, ref) < RDM_MAX, rdm(v, ref)
     assert mag(v, ref) < MAG_MAX, mag(v, ref)
@@ -146,7 +146,7 @@ def test_unstructured_tetwild_sphere():
 
     mesh = tetwild_sphere_mesh(RADII_MM, edge_mm=10.0, subdivisions=3)
     elec = place_electrodes(mesh, N_ELEC, landmarks=LANDMARKS, radius_mm=RADIUS_MM,
-                            contact_impedance=Z_UNIFORM)
+                            contact_impedance_ohm_m2=Z_UNIFORM)
     model = build_forward_model(mesh, elec)
     prot = opposite(N_ELEC, current_a=1e-3)
     for sigma, radii, sig in ((SIGMA_4, RADII_MM, SIGMA_4), (SIGMA_HOM, (R,), [0.44])):

@@ -62,7 +62,7 @@ def cem_entries(n_nodes: int, faces: np.ndarray, face_electrode: np.ndarray,
     return np.concatenate([mi, zi, eu]), np.concatenate([mj, zj, eu])
 
 
-def cem_values(nodes_m, faces, face_electrode, free_faces, contact_impedance):
+def cem_values(nodes_m, faces, face_electrode, free_faces, contact_impedance_ohm_m2):
     """CEM contribution values in `cem_entries` order (SI: S).
 
     Arguments:
@@ -70,13 +70,13 @@ def cem_values(nodes_m, faces, face_electrode, free_faces, contact_impedance):
         faces: (n_eface, 3) electrode faces.
         face_electrode: (n_eface,) electrode of each face.
         free_faces: (n_free,) indices of the faces not on the ground electrode.
-        contact_impedance: (n_elec,) z_l in Ohm m^2.
+        contact_impedance_ohm_m2: (n_elec,) z_l in Ohm m^2.
 
     Returns:
         (6 n_eface + 4 n_free,) values: (1/z) int phi_a phi_b, -(1/z) int phi_a, |face| / z.
     """
     area = face_areas(nodes_m, faces)
-    inv_z = 1.0 / contact_impedance[face_electrode]
+    inv_z = 1.0 / contact_impedance_ohm_m2[face_electrode]
     mass = face_mass(area) * inv_z[:, None]
     a_free, iz_free = area[free_faces], inv_z[free_faces]
     az = jnp.repeat(-(a_free * iz_free) / 3.0, 3)

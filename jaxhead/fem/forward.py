@@ -60,7 +60,7 @@ class ForwardModel(eqx.Module):
         faces: (n_eface, 3) electrode faces (mesh boundary), outward.
         face_electrode: (n_eface,) electrode of each face.
         free_faces: (n_free,) faces not on the ground electrode.
-        contact_impedance: (n_elec,) default contact impedances in Ohm m^2.
+        contact_impedance_ohm_m2: (n_elec,) default contact impedances in Ohm m^2.
         order, targets: scatter plan of the tets' element entries (10 per tet) into the stored
             matrix entries (`jaxhead.fem.assembly.scatter_plan`).
         cem_targets: stored entry of each CEM contribution (`jaxhead.fem.cem.cem_entries`).
@@ -79,7 +79,7 @@ class ForwardModel(eqx.Module):
     faces: jax.Array
     face_electrode: jax.Array
     free_faces: jax.Array
-    contact_impedance: jax.Array
+    contact_impedance_ohm_m2: jax.Array
     order: jax.Array
     targets: jax.Array
     cem_targets: jax.Array
@@ -134,7 +134,7 @@ def build_forward_model(mesh: TetMesh, electrodes, *, solver: AbstractSolver | N
             f"`solver` must be a solver object such as Direct() or BlockCG(), got {solver!r}.")
     faces = np.asarray(electrodes.faces, dtype=np.int64)
     fe = np.asarray(electrodes.face_electrode, dtype=np.int64)
-    z = np.asarray(electrodes.contact_impedance, dtype=np.float64)
+    z = np.asarray(electrodes.contact_impedance_ohm_m2, dtype=np.float64)
     n_elec = z.shape[0]
     n_nodes = mesh.n_nodes
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
@@ -153,7 +153,7 @@ def build_forward_model(mesh: TetMesh, electrodes, *, solver: AbstractSolver | N
     if missing.size:
         raise ValueError(f"electrodes {missing.tolist()} have no faces; re-place them.")
     if not np.all(np.isfinite(z)) or np.any(z <= 0):
-        raise ValueError(f"`electrodes.contact_impedance` must be > 0 Ohm m^2, got {z}.")
+        raise ValueError(f"`electrodes.contact_impedance_ohm_m2` must be > 0 Ohm m^2, got {z}.")
     # Electrode faces must be faces of the mesh boundary (their nodes are in the pattern via tets).
     bkey = np.sort(mesh.boundary_faces()[0], axis=1)
     fkey = np.sort(faces, axis=1)
@@ -182,7 +182,7 @@ def build_forward_model(mesh: TetMesh, electrodes, *, solver: AbstractSolver | N
     model = ForwardModel(
         nodes=jnp.asarray(mesh.nodes), tets=i32(tets), labels=i32(mesh.labels),
         faces=i32(faces), face_electrode=i32(fe), free_faces=i32(free),
-        contact_impedance=jnp.asarray(z), order=i32(order), targets=i32(targets),
+        contact_impedance_ohm_m2=jnp.asarray(z), order=i32(order), targets=i32(targets),
         cem_targets=i32(pattern.locate(ci, cj)), tissue_values=None,
         pattern=PatternArrays.from_pattern(pattern), solver=solver, solver_state=None,
         n_nodes=n_nodes, n_elec=n_elec, nnz=pattern.nnz,
@@ -232,22 +232,22 @@ def _check_nodes(model: ForwardModel, nodes):
     return nodes
 
 
-def _check_z(model: ForwardModel, contact_impedance):
-    if contact_impedance is None:
+def _check_z(model: ForwardModel, contact_impedance_ohm_m2):
+    if contact_impedance_ohm_m2 is None:
         return None
-    z = jnp.asarray(contact_impedance)
+    z = jnp.asarray(contact_impedance_ohm_m2)
     if not jnp.issubdtype(z.dtype, jnp.floating):
         z = z.astype(float)
     if z.ndim == 0:
         z = jnp.full((model.n_elec,), z)
     if z.shape != (model.n_elec,):
         raise ValueError(
-            f"`contact_impedance` has shape {z.shape}; give one value or one per electrode "
+            f"`contact_impedance_ohm_m2` has shape {z.shape}; give one value or one per electrode "
             f"({model.n_elec},), in Ohm m^2.")
     if not _is_tracer(z):
         zn = np.asarray(z)
         if not np.all(np.isfinite(zn)) or np.any(zn <= 0):
-            raise ValueError(f"`contact_impedance` must be finite and > 0 Ohm m^2, got {zn}.")
+            raise ValueError(f"`contact_impedance_ohm_m2` must be finite and > 0 Ohm m^2, got {zn}.")
     return z
 
 
@@ -310,9 +310,9 @@ _tissue_values_jit = eqx.filter_jit(_tissue_values)
 def _assemble(model: ForwardModel, sigma, nodes, z):
     """Stored values of the grounded CEM matrix from validated inputs (S)."""
     sigma = eqx.error_if(sigma, jnp.any(~(sigma > 0)), "`sigma` must be > 0 S/m (got <= 0 or NaN).")
-    z = model.contact_impedance if z is None else z
+    z = model.contact_impedance_ohm_m2 if z is None else z
     z = eqx.error_if(z, jnp.any(~(z > 0)),
-                     "`contact_impedance` must be > 0 Ohm m^2 (got <= 0 or NaN).")
+                     "`contact_impedance_ohm_m2` must be > 0 Ohm m^2 (got <= 0 or NaN).")
     x = _geometry(model, nodes)
     per_tissue = sigma.shape[0] == len(TISSUES) and model.n_tets != len(TISSUES)
     if per_tissue and nodes is None:
@@ -328,17 +328,17 @@ def _assemble(model: ForwardModel, sigma, nodes, z):
     return values.at[model.cem_targets].add(cem)
 
 
-def assemble(model: ForwardModel, sigma, *, nodes=None, contact_impedance=None):
+def assemble(model: ForwardModel, sigma, *, nodes=None, contact_impedance_ohm_m2=None):
     """Stored (upper-triangle) values of the grounded CEM matrix, shape (nnz,), in S.
 
     Arguments:
         model: the ForwardModel.
         sigma: (4,) per-tissue or (n_tets,) per-tet conductivity in S/m.
         nodes: optional (n_nodes, 3) node positions in mm (default: the mesh's).
-        contact_impedance: optional scalar or (n_elec,) in Ohm m^2 (default: the electrodes').
+        contact_impedance_ohm_m2: optional scalar or (n_elec,) in Ohm m^2 (default: the electrodes').
     """
     return _assemble_jit(model, _check_sigma(model, sigma), _check_nodes(model, nodes),
-                         _check_z(model, contact_impedance))
+                         _check_z(model, contact_impedance_ohm_m2))
 
 
 _assemble_jit = eqx.filter_jit(_assemble)
@@ -395,7 +395,7 @@ def _simulate_basis(model, sigma, nodes, z, rows, current):
     return current * (G[p, s] - G[p, k] - G[q, s] + G[q, k])
 
 
-def simulate(model: ForwardModel, sigma, protocol, *, nodes=None, contact_impedance=None):
+def simulate(model: ForwardModel, sigma, protocol, *, nodes=None, contact_impedance_ohm_m2=None):
     """Measured voltages of a protocol: one solve per unique injection.
 
     Arguments:
@@ -404,7 +404,7 @@ def simulate(model: ForwardModel, sigma, protocol, *, nodes=None, contact_impeda
         protocol: `jaxhead.protocol.Protocol`: rows (n_rows, 4) [source, sink, meas+, meas-]
             electrode indices and current_a (A).
         nodes: optional (n_nodes, 3) node positions in mm (same topology): geometry derivatives.
-        contact_impedance: optional scalar or (n_elec,) Ohm m^2 (default: the electrodes').
+        contact_impedance_ohm_m2: optional scalar or (n_elec,) Ohm m^2 (default: the electrodes').
 
     Returns:
         (n_rows,) voltages U[meas+] - U[meas-] in V for current_a A from source to sink.
@@ -417,7 +417,7 @@ def simulate(model: ForwardModel, sigma, protocol, *, nodes=None, contact_impeda
     rows, current = _rows_of(model, protocol)
     sigma = _check_sigma(model, sigma)
     nodes = _check_nodes(model, nodes)
-    z = _check_z(model, contact_impedance)
+    z = _check_z(model, contact_impedance_ohm_m2)
     if isinstance(rows, np.ndarray):
         currents, index, sign = _pair_patterns(rows[:, :2], model.n_elec)
         return _simulate_pairs(model, sigma, nodes, z, currents, rows[:, 2], rows[:, 3],
@@ -433,7 +433,7 @@ def _potentials(model, sigma, nodes, z, currents):
 
 
 def potentials(model: ForwardModel, sigma, injections, *, current_a: float = 1.0, nodes=None,
-               contact_impedance=None):
+               contact_impedance_ohm_m2=None):
     """Nodal potentials and electrode voltages for injections (for plots and checks).
 
     Arguments:
@@ -442,7 +442,7 @@ def potentials(model: ForwardModel, sigma, injections, *, current_a: float = 1.0
         injections: (n_inj, 2) integer [source, sink] electrode pairs, or (n_elec, n_inj)
             current patterns in units of `current_a` (each column summing to zero).
         current_a: injected current in A.
-        nodes, contact_impedance: as in `simulate`.
+        nodes, contact_impedance_ohm_m2: as in `simulate`.
 
     Returns:
         u: (n_inj, n_nodes) nodal potentials in V; U: (n_inj, n_elec) electrode voltages in V;
@@ -468,7 +468,7 @@ def potentials(model: ForwardModel, sigma, injections, *, current_a: float = 1.0
             f"`injections` has shape {inj.shape}; pass (n_inj, 2) integer [source, sink] "
             f"pairs or (n_elec={model.n_elec}, n_inj) current patterns.")
     return _potentials(model, _check_sigma(model, sigma), _check_nodes(model, nodes),
-                       _check_z(model, contact_impedance),
+                       _check_z(model, contact_impedance_ohm_m2),
                        current_a * jnp.asarray(currents, dtype=float))
 
 
@@ -588,7 +588,7 @@ def _tet_rows(model, nodes, fields, d_idx, m_idx, scale, out_dtype, tile, out=No
 
 
 def jacobian(model: ForwardModel, sigma, protocol, *, per: str = "tet", nodes=None,
-             contact_impedance=None, dtype=None, tile_tets: int = 8192, out=None,
+             contact_impedance_ohm_m2=None, dtype=None, tile_tets: int = 8192, out=None,
              return_volts: bool = False):
     """Sensitivity of the protocol's voltages to conductivity, by reciprocity (no autodiff).
 
@@ -604,7 +604,7 @@ def jacobian(model: ForwardModel, sigma, protocol, *, per: str = "tet", nodes=No
         sigma: (4,) or (n_tets,) conductivity in S/m.
         protocol: Protocol (its rows must be concrete: close over it under jit).
         per: "tet" -> (n_rows, n_tets); "tissue" -> (n_rows, 4) (sums over each tissue's tets).
-        nodes, contact_impedance: as in `simulate`.
+        nodes, contact_impedance_ohm_m2: as in `simulate`.
         dtype: storage dtype of the result (jnp.float32 halves the memory); the solves stay
             float64 (the per-tet gradient products are then formed in float32, an error of
             ~1e-7 relative, the same as the storage's rounding).
@@ -639,7 +639,7 @@ def jacobian(model: ForwardModel, sigma, protocol, *, per: str = "tet", nodes=No
     sigma = _check_sigma(model, sigma)
     nodes = _check_nodes(model, nodes)
     fields, volts = _jacobian_solve(
-        model, sigma, nodes, _check_z(model, contact_impedance), currents, combo, rows[:, 2],
+        model, sigma, nodes, _check_z(model, contact_impedance_ohm_m2), currents, combo, rows[:, 2],
         rows[:, 3], d_idx, current * d_sign)
     scale = jnp.asarray(-current * d_sign * m_sign)
     if per == "tissue":

@@ -47,7 +47,7 @@ class FitResult(eqx.Module):
 
     Attributes:
         sigma: (4,) conductivities in S/m, ordered BRAIN, CSF, SKULL, SCALP (unfitted ones = init).
-        contact_impedance: (n_elec,) Ohm m^2 (the initial ones scaled by the fitted factor).
+        contact_impedance_ohm_m2: (n_elec,) Ohm m^2 (the initial ones scaled by the fitted factor).
         fitted: names of the fitted parameters, in the order of `std_error`/`correlation`.
         estimates: (n_fit,) fitted values (S/m; Ohm m^2 for "contact_impedance", the mean
             over electrodes).
@@ -73,7 +73,7 @@ class FitResult(eqx.Module):
     """
 
     sigma: np.ndarray
-    contact_impedance: np.ndarray | None
+    contact_impedance_ohm_m2: np.ndarray | None
     fitted: tuple[str, ...] = eqx.field(static=True)
     estimates: np.ndarray = None
     std_error: np.ndarray = None
@@ -221,7 +221,7 @@ def _residuals(theta, p: _Problem):
     the prior's rows (module level: compiled once)."""
 
     sigma, z, gain = _unpack(theta, p)
-    v = gain * simulate(p.model, sigma, p.protocol, contact_impedance=z)
+    v = gain * simulate(p.model, sigma, p.protocol, contact_impedance_ohm_m2=z)
     u = p.keep * _whiten(v + p.offset - p.measured, p)
     u = u - p.obasis @ (p.obasis.T @ u)
     u = _robust(u, p.loss, p.loss_scale)
@@ -322,7 +322,7 @@ def _prepare(model, protocol, measured, *, init, fit, contact_impedance, noise_s
         if key not in labels and not (key == "contact_impedance" and n_z > 1):
             raise ValueError(f"`bounds` names {key!r}, which is not fitted; fitted: {labels}.")
     start = [float(init[i]) for i in idx] + [1.0] * n_z + ([1.0] if gain else [])
-    z0 = np.asarray(model.contact_impedance, np.float64)
+    z0 = np.asarray(model.contact_impedance_ohm_m2, np.float64)
     lo, hi = [], []
     for k, (name, x0) in enumerate(zip(labels, start)):
         key = "contact_impedance" if name.startswith("z:") else name
@@ -402,7 +402,7 @@ def _injection_matrix(protocol) -> np.ndarray:
 def _fitted_offsets(theta, prob: _Problem) -> np.ndarray:
     """Per-injection offsets c minimising || keep W (g V + A c - measured) ||, (n_inj,) V."""
     sigma, z, gain = _unpack(theta, prob)
-    v = np.asarray(gain * simulate(prob.model, sigma, prob.protocol, contact_impedance=z))
+    v = np.asarray(gain * simulate(prob.model, sigma, prob.protocol, contact_impedance_ohm_m2=z))
     A = _injection_matrix(prob.protocol)
     keep = np.asarray(prob.keep)
     WA = keep[:, None] * np.asarray(jax.vmap(lambda a: _whiten(a, prob), 1, 1)(jnp.asarray(A)))
@@ -414,7 +414,7 @@ def _all_residuals(theta, prob: _Problem, offsets: bool) -> np.ndarray:
     """Whitened residuals W (g V + offset + A c - measured) of every channel, rejected ones
     included, with the offsets c fitted to the kept channels (no robust transform)."""
     sigma, z, gain = _unpack(theta, prob)
-    v = gain * simulate(prob.model, sigma, prob.protocol, contact_impedance=z)
+    v = gain * simulate(prob.model, sigma, prob.protocol, contact_impedance_ohm_m2=z)
     if offsets:
         v = v + jnp.asarray(_injection_matrix(prob.protocol) @ _fitted_offsets(theta, prob))
     return np.asarray(_whiten(v + prob.offset - prob.measured, prob))
@@ -452,7 +452,7 @@ def _result(theta, prob: _Problem, labels, *, n_steps, n_forward, result, ill_co
     kept = np.asarray(prob.keep) > 0
     scale = float(1.4826 * np.median(np.abs(du[kept]))) if kept.any() else float("nan")
     return FitResult(
-        sigma=np.asarray(sigma), contact_impedance=np.asarray(z), fitted=tuple(labels),
+        sigma=np.asarray(sigma), contact_impedance_ohm_m2=np.asarray(z), fitted=tuple(labels),
         estimates=est, std_error=se, correlation=corr,
         residual_norm=float(jnp.linalg.norm(r)), n_steps=int(n_steps),
         n_forward=int(n_forward), condition=cond, result=result,

@@ -378,7 +378,7 @@ def _approx_error(cfg: RunConfig, electrodes, model, protocol, sigma):
 
     fine = io.load_mesh(cfg.inverse.approx_error_mesh)
     fine_el = place_electrodes(fine, electrodes.centres, radius_mm=cfg.electrodes.radius_mm,
-                               contact_impedance=cfg.electrodes.contact_impedance_ohm_m2,
+                               contact_impedance_ohm_m2=cfg.electrodes.contact_impedance_ohm_m2,
                                names=list(electrodes.names),
                                max_distance_mm=cfg.electrodes.max_distance_mm)
     accurate = build_forward_model(fine, fine_el, solver=_solver(cfg.forward.solver))

@@ -106,14 +106,14 @@ def prepare_reference(cfg: dict, ref_dir: str) -> str:
                 labels = resample(labels, rc["voxel_mm"])
         mesh = _mesh_of(labels)
     el = place_electrodes(mesh, rc["n_elec"], radius_mm=rc["electrode_radius_mm"],
-                          contact_impedance=rc["contact_impedance_ohm_m2"])
+                          contact_impedance_ohm_m2=rc["contact_impedance_ohm_m2"])
     Path(ref_dir).mkdir(parents=True, exist_ok=True)
     with atomic_write_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, nodes=mesh.nodes, tets=mesh.tets, labels=mesh.labels,
                      label_map=labels.labels, affine=labels.affine, centres=el.centres,
                      efaces=el.faces, face_electrode=el.face_electrode,
-                     contact_impedance=el.contact_impedance, names=np.array(el.names),
+                     contact_impedance_ohm_m2=el.contact_impedance_ohm_m2, names=np.array(el.names),
                      face_areas=el.face_areas_mm2)
     return str(path)
 
@@ -133,7 +133,7 @@ class _Worker:
         self.label_map = LabelMap(d["label_map"], d["affine"])
         self.mesh = TetMesh(d["nodes"], d["tets"], d["labels"])
         self.electrodes = Electrodes(d["centres"], d["efaces"], d["face_electrode"],
-                                     d["contact_impedance"], tuple(str(n) for n in d["names"]),
+                                     d["contact_impedance_ohm_m2"], tuple(str(n) for n in d["names"]),
                                      d["face_areas"])
         self.radius_mm = rc["electrode_radius_mm"]
         self.sigma = ReferenceConfig(**rc).sigma()
@@ -305,7 +305,7 @@ def _measure_sample(w: _Worker, s: dict, extra: dict) -> dict:
                                       amplitude=s["amplitude"], seed=seed)
         mesh = _mesh_of(labels)
         el = place_electrodes(mesh, w.electrodes.centres, radius_mm=w.radius_mm,
-                              contact_impedance=w.electrodes.contact_impedance,
+                              contact_impedance_ohm_m2=w.electrodes.contact_impedance_ohm_m2,
                               names=w.electrodes.names)
         model = build_forward_model(mesh, el)
         v = np.asarray(simulate(model, sigma, prot))

@@ -233,7 +233,7 @@ def jitter_electrodes(mesh: TetMesh, electrodes: Electrodes, sd_mm: float, *, se
     if radius_mm is None:
         radius_mm = np.sqrt(electrodes.area_mm2() / np.pi)
     new = place_electrodes(mesh, c + g, radius_mm=radius_mm,
-                           contact_impedance=electrodes.contact_impedance, names=electrodes.names)
+                           contact_impedance_ohm_m2=electrodes.contact_impedance_ohm_m2, names=electrodes.names)
     shift = np.linalg.norm(new.centres - c, axis=1)
     return new, {"kind": "electrode_position", "sd_mm": float(sd_mm), "seed": int(seed),
                  "mean_shift_mm": float(shift.mean()), "max_shift_mm": float(shift.max())}
