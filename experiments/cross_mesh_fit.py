@@ -65,11 +65,11 @@ mods = {k: build_forward_model(M[k], place_electrodes(M[k], pos, radius_mm=6.0),
                                solver=Direct(threads=2))
         for k in ("B_refined", "C_fine_refined", "D_independent", "F_finer_surfaces")}
 t = time.perf_counter()
-ae = approximation_error(mods["C_fine_refined"], mods["B_refined"], prot,
-                         sample_conductivities(24, seed=12345))
+ae = approximation_error(mods["C_fine_refined"], mods["B_refined"],
+                         sample_conductivities(24, seed=12345), prot)
 print(f"approximation error of B against C: 24 draws in {time.perf_counter() - t:.0f} s", flush=True)
-ae_F = approximation_error(mods["F_finer_surfaces"], mods["B_refined"], prot,
-                           sample_conductivities(24, seed=12345))
+ae_F = approximation_error(mods["F_finer_surfaces"], mods["B_refined"],
+                           sample_conductivities(24, seed=12345), prot)
 solver = LineSearchGaussNewton(rtol=1e-6, atol=1e-6)
 
 

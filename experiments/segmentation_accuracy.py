@@ -41,7 +41,7 @@ jax.config.update("jax_enable_x64", True)  # entry point: float64 available (seg
 import numpy as np  # noqa: E402
 
 from jaxhead.phantom import make_head  # noqa: E402
-from jaxhead.segmentation import SegmentConfig, default_atlas, segment  # noqa: E402
+from jaxhead.segmentation import SegmentConfig, default_atlas, segment_reported  # noqa: E402
 from jaxhead.segmentation.atlas import anatomy_atlas  # noqa: E402
 from jaxhead.segmentation.templates import ants_anatomy, mni152_anatomy, random_contrast, render  # noqa: E402
 from jaxhead.tissue import TISSUES  # noqa: E402
@@ -94,14 +94,14 @@ def run(args) -> list[dict]:
         for anat, atlas, noise, contrast, vol, truth in cases(modality, args.voxel_mm, args.seeds, Path(args.heads)):
             t = time.perf_counter()
             try:
-                seg = segment(vol, atlas, cfg)
+                labels, seg = segment_reported(vol, atlas, cfg)
             except ValueError as err:  # a refused scan (e.g. judged mis-oriented) counts as Dice 0
                 log.warning("%s %s noise %g %s: segment refused it: %s", anat, modality, noise, contrast, err)
                 d = {t_.name.lower(): 0.0 for t_ in TISSUES}
                 rows.append(dict(anatomy=anat, atlas=atlas.name, modality=modality, noise=noise, contrast=contrast,
                                  seconds=time.perf_counter() - t, nmi=float("nan"), error=str(err)[:200], **d))
                 continue
-            d = dice_per_tissue(seg.labels.labels, truth)
+            d = dice_per_tissue(labels.labels, truth)
             rows.append(dict(anatomy=anat, atlas=atlas.name, modality=modality, noise=noise, contrast=contrast,
                              seconds=time.perf_counter() - t, nmi=seg.registration["nmi"], **d))
             log.info("%s %s noise %g %s (atlas %s): %s (%.0f s)", anat, modality, noise, contrast, atlas.name,

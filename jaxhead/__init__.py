@@ -3,7 +3,7 @@
 The pipeline, one verb per stage (STYLE.md):
 
     volume, truth = make_head("mri")                     # or load_volume("scan.nii.gz")
-    labels = segment(volume, atlas=None).labels          # or truth
+    labels = segment(volume)                             # or truth
     layers = make_layers(labels)
     surfaces = extract_surfaces(layers)
     mesh = tetrahedralize(surfaces)
@@ -11,7 +11,12 @@ The pipeline, one verb per stage (STYLE.md):
     model = build_forward_model(mesh, electrodes)
     volts = simulate(model, default_sigma(), adjacent(32))
 
-Subpackages, in pipeline order: `io`, `segment`, `geometry`, `fem`, `inverse`, `run`.
+A stage returns its value; a stage with a report has a `*_reported` twin returning
+(value, report): `segment_reported`, `make_layers_reported`, `extract_surfaces_reported`,
+`tetrahedralize_reported`. Estimators return a result Module (`FitResult`, `Reconstruction`).
+Arguments: the model first, then what varies (sigma), then the protocol and the data.
+
+Subpackages, in pipeline order: `segmentation`, `geometry`, `io`, `fem`, `inverse`, `study`, `run`.
 """
 
 from . import fem as fem
@@ -83,6 +88,7 @@ from .io import save_labels as save_labels
 from .io import save_mesh as save_mesh
 from .io import save_surface as save_surface
 from .io import save_volume as save_volume
+from .phantom import PhantomHead as PhantomHead
 from .phantom import make_head as make_head
 from .phantom import make_population as make_population
 from .protocol import Protocol as Protocol
@@ -98,6 +104,7 @@ from .segmentation import SegmentConfig as SegmentConfig
 from .segmentation import Segmentation as Segmentation
 from .segmentation import default_atlas as default_atlas
 from .segmentation import segment as segment  # the verb; the subpackage stays importable as jaxhead.segmentation.*
+from .segmentation import segment_reported as segment_reported
 from .tissue import DEFAULT_SIGMA_S_M as DEFAULT_SIGMA_S_M
 from .tissue import TISSUE_NAMES as TISSUE_NAMES
 from .tissue import TISSUES as TISSUES

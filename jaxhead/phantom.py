@@ -38,7 +38,7 @@ import logging
 import math
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -46,7 +46,7 @@ from scipy import ndimage
 from .tissue import Tissue
 from .volume import LabelMap, Volume, default_affine
 
-__all__ = ["Structure", "STRUCTURE_TISSUE", "make_head", "make_population", "structure_map"]
+__all__ = ["PhantomHead", "Structure", "STRUCTURE_TISSUE", "make_head", "make_population", "structure_map"]
 
 log = logging.getLogger(__name__)
 
@@ -782,6 +782,22 @@ def _nested_labels(s: np.ndarray) -> tuple[np.ndarray, int]:
 # ----------------------------------------------------------------------------------------------
 
 
+class PhantomHead(NamedTuple):
+    """A synthetic scan and its ground truth, as `make_head` returns them.
+
+    A named pair: ``volume, labels = make_head(...)`` unpacks it, ``head.labels`` names a field.
+    (Not a result with a report: a phantom has nothing to report; the pipeline stages return
+    their value, and a ``*_reported`` twin returns (value, report).)
+
+    Attributes:
+        volume: `Volume` (x, y, z) float64 intensities (MRI: white matter = 1; CT: HU).
+        labels: `LabelMap` (x, y, z) strictly nested `Tissue` values on the same grid and affine.
+    """
+
+    volume: Volume
+    labels: LabelMap
+
+
 def _setup(seed, voxel_mm, shape, neck):
     seed = _check_seed(seed)
     vox = _check_voxel(voxel_mm)
@@ -794,7 +810,7 @@ def _setup(seed, voxel_mm, shape, neck):
 
 def make_head(modality: Modality = "mri", *, shape: tuple[int, int, int] | None = None,
               voxel_mm: float | tuple[float, float, float] = 2.0, noise: float | None = None,
-              seed: int = 0, neck: bool = True, bias: bool = True) -> tuple[Volume, LabelMap]:
+              seed: int = 0, neck: bool = True, bias: bool = True) -> PhantomHead:
     """A synthetic head scan (MRI or CT) and its strictly nested tissue labels.
 
     Arguments:
@@ -811,8 +827,8 @@ def make_head(modality: Modality = "mri", *, shape: tuple[int, int, int] | None 
         bias: MRI only: multiply by a smooth random bias field (+-15 %).
 
     Returns:
-        (volume, labels): `Volume` (x, y, z) float64 intensities and `LabelMap` (x, y, z) `Tissue`
-        values on the same grid and affine (`default_affine(voxel_mm, shape)`: world origin at the
+        PhantomHead (volume, labels), a named pair: `Volume` (x, y, z) float64 intensities and
+        `LabelMap` (x, y, z) `Tissue` values on the same grid and affine (`default_affine(voxel_mm, shape)`: world origin at the
         grid centre, RAS mm). Labels are the voxel-centre tissue made strictly nested (see module
         docstring); ventricles are CSF inside the brain.
     """
@@ -855,7 +871,7 @@ def make_head(modality: Modality = "mri", *, shape: tuple[int, int, int] | None 
     affine = default_affine(vox, shape)
     if np.any(labels[[0, -1]]) or np.any(labels[:, [0, -1]]) or np.any(labels[:, :, [0, -1]]):
         raise AssertionError("phantom head touches the grid border")  # guarded by _grid_shape
-    return Volume(image, affine), LabelMap(labels, affine)
+    return PhantomHead(Volume(image, affine), LabelMap(labels, affine))
 
 
 def structure_map(*, shape: tuple[int, int, int] | None = None,
@@ -879,7 +895,7 @@ def structure_map(*, shape: tuple[int, int, int] | None = None,
 
 
 def make_population(n: int, modality: Modality = "mri", seed: int = 0,
-                    **kw) -> list[tuple[Volume, LabelMap]]:
+                    **kw) -> list[PhantomHead]:
     """`n` different subjects: subject i is ``make_head(modality, seed=seed + i, **kw)``.
 
     Arguments:
@@ -889,7 +905,7 @@ def make_population(n: int, modality: Modality = "mri", seed: int = 0,
         **kw: shape, voxel_mm, noise, neck, bias as for `make_head`.
 
     Returns:
-        list of n (Volume, LabelMap) pairs.
+        list of n PhantomHead (volume, labels) pairs.
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"`n` must be a positive integer (number of subjects), got {n!r}.")

@@ -75,7 +75,7 @@ def two_spheres():
     reduced = build_forward_model(coarse, place_electrodes(coarse, pos, radius_mm=10.0))
     accurate = build_forward_model(fine, place_electrodes(fine, pos, radius_mm=10.0))
     protocol = skip_protocol(N_ELEC)
-    ae = approximation_error(accurate, reduced, protocol, sample_conductivities(20, seed=1))
+    ae = approximation_error(accurate, reduced, sample_conductivities(20, seed=1), protocol)
     return reduced, accurate, protocol, ae
 
 
@@ -113,7 +113,7 @@ def test_fit_across_meshes_needs_the_approximation_error(two_spheres):
 
 def test_same_model_error_changes_nothing(two_spheres):
     reduced, _, protocol, _ = two_spheres
-    ae = approximation_error(reduced, reduced, protocol, sample_conductivities(3, seed=2))
+    ae = approximation_error(reduced, reduced, sample_conductivities(3, seed=2), protocol)
     assert np.all(ae.mean == 0) and np.all(ae.deviations == 0)
     m = add_noise(np.asarray(simulate(reduced, TRUE, protocol)), 0.5, seed=4)
     a = fit_conductivities(reduced, protocol, m, init=default_sigma(), noise_std=1e-4)
@@ -127,14 +127,19 @@ def test_errors(two_spheres):
     reduced, accurate, protocol, ae = two_spheres
     m = np.asarray(simulate(reduced, TRUE, protocol))
     with pytest.raises(ValueError, match="sigma_samples"):
-        approximation_error(accurate, reduced, protocol, np.ones(4))
+        approximation_error(accurate, reduced, np.ones(4), protocol)
     with pytest.raises(ValueError, match="sigma_samples"):
-        approximation_error(accurate, reduced, protocol, -np.ones((3, 4)))
+        approximation_error(accurate, reduced, -np.ones((3, 4)), protocol)
+    # the order before issue 16 (protocol third) is an error that says to swap
+    with pytest.raises(ValueError, match="swap"):
+        approximation_error(accurate, reduced, protocol, np.ones((3, 4)))
+    with pytest.raises(ValueError, match="Protocol"):
+        approximation_error(accurate, reduced, np.ones((3, 4)), np.ones((3, 4)))
     other = build_forward_model(reduced_mesh := structured_sphere_mesh(h_mm=18.0),
                                 place_electrodes(reduced_mesh, spread_positions(reduced_mesh, 16),
                                                  radius_mm=10.0))
     with pytest.raises(ValueError, match="electrodes"):
-        approximation_error(accurate, other, protocol, np.ones((3, 4)))
+        approximation_error(accurate, other, np.ones((3, 4)), protocol)
     with pytest.raises(ValueError, match="approx_error"):
         fit_conductivities(reduced, protocol, m, init=TRUE, approx_error=np.zeros(3))
     short = ApproximationError(mean=np.zeros(5), deviations=np.zeros((2, 5)),

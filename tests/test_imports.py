@@ -157,3 +157,19 @@ def test_public_api():
         assert hasattr(jh, name), name
     assert set(jh.__all__) <= set(dir(jh))
     assert not [n for n in jh.__all__ if n.startswith("_")]
+
+
+def test_result_convention():
+    """Every stage with a report: `verb` returns the value, `verb_reported` returns (value, report)."""
+    import typing
+
+    import jaxhead as jh
+
+    twins = [n for n in jh.__all__ if n.endswith("_reported")]
+    assert {"segment_reported", "make_layers_reported", "extract_surfaces_reported",
+            "tetrahedralize_reported"} <= set(twins)
+    for name in twins:
+        verb = getattr(jh, name.removesuffix("_reported"))
+        value = typing.get_type_hints(verb)["return"]
+        pair = typing.get_type_hints(getattr(jh, name))["return"]
+        assert typing.get_origin(pair) is tuple and typing.get_args(pair)[0] == value, (name, pair, value)

@@ -113,8 +113,8 @@ def test_fit_recovers_head_conductivities_from_other_mesh(head):
     # mesh both makes the data and stands for the head in the error model, as in the
     # approximation-error literature's simulations; experiments/cross_mesh_fit.py also estimates
     # it on a third mesh that did not make the data.
-    ae = approximation_error(head["data_model"], head["model"], head["protocol"],
-                             sample_conductivities(20, seed=7))
+    ae = approximation_error(head["data_model"], head["model"], sample_conductivities(20, seed=7),
+                             head["protocol"])
     v = np.asarray(simulate(head["data_model"], TRUE, head["protocol"]))
     for seed in (0, 1):
         res = fit_conductivities(head["model"], head["protocol"], add_noise(v, 0.5, seed=seed),

@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 
 from jaxhead import phantom as P
-from jaxhead.phantom import STRUCTURE_TISSUE, Structure, make_head, make_population, structure_map
+from jaxhead.phantom import STRUCTURE_TISSUE, PhantomHead, Structure, make_head, make_population, structure_map
 from jaxhead.tissue import Tissue
 from jaxhead.volume import LabelMap, Volume, default_affine
 
@@ -333,6 +333,10 @@ def test_population():
     one = make_head("ct", voxel_mm=5.0, seed=11, noise=0)
     np.testing.assert_array_equal(pop[1][0].data, one[0].data)
     assert pop[0][1].shape != pop[1][1].shape or not np.array_equal(pop[0][1].labels, pop[1][1].labels)
+    # a named pair: fields and unpacking name the same objects
+    volume, labels = one
+    assert isinstance(one, PhantomHead) and one.volume is volume and one.labels is labels
+    assert isinstance(volume, Volume) and isinstance(labels, LabelMap)
 
 
 def test_structure_map_agrees_with_labels(mri3, s3):

@@ -6,7 +6,10 @@ import numpy as np
 import pytest
 
 from jaxhead.phantom import make_head, make_population
-from jaxhead.segmentation import Atlas, RegisterConfig, SegmentConfig, build_atlas, cache_dir, default_atlas, segment
+from jaxhead.segmentation import (
+    Atlas, RegisterConfig, SegmentConfig, build_atlas, cache_dir, default_atlas, segment,
+    segment_reported,
+)
 from jaxhead.segmentation.atlas import ATLAS_VERSION, DEFAULT_ATLAS_SEED
 from jaxhead.tissue import TISSUES, Tissue
 from jaxhead.volume import Volume
@@ -69,7 +72,8 @@ def test_atlas_is_a_probability_map(atlas_mri):
 def test_segment_mri_phantom_not_in_atlas(atlas_mri):
     vol, truth = make_head("mri", voxel_mm=VOX, seed=3)  # atlas seeds are 1000..1002
     cfg = SegmentConfig(modality="mri", register=FAST_REG, precision="float64")
-    seg = segment(vol, atlas_mri, cfg)
+    labels, seg = segment_reported(vol, atlas_mri, cfg)
+    assert seg.labels is labels
     assert seg.labels.shape == vol.shape and np.allclose(seg.labels.affine, vol.affine)
     assert seg.posteriors.shape == (5, *vol.shape) and seg.posteriors.dtype == np.float32
     np.testing.assert_allclose(seg.posteriors.sum(0), 1.0, atol=1e-5)  # stored as float32

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxhead.segmentation import SegmentConfig, default_atlas, segment
+from jaxhead.segmentation import SegmentConfig, default_atlas, segment, segment_reported
 from jaxhead.segmentation.atlas import ATLAS_VERSION, anatomy_atlas
 from jaxhead.segmentation.segment import MAX_SCALE, MIN_NMI, MIN_SCALE, check_label_map, dice_scores
 from jaxhead.segmentation.templates import (
@@ -119,11 +119,11 @@ def test_segment_held_out_head(modality, ants, cache):
     contrast = random_contrast(modality, np.random.default_rng(3))
     vol = render(ants, modality, contrast=contrast, noise=0.05 if modality == "mri" else 10.0,
                  bias=0.2 if modality == "mri" else 0.0, seed=3)
-    seg = segment(vol, None, SegmentConfig(modality=modality, atlas_voxel_mm=VOX))
+    labels, seg = segment_reported(vol, None, SegmentConfig(modality=modality, atlas_voxel_mm=VOX))
     assert seg.atlas_name == "mni152"
     r = seg.registration
     assert MIN_SCALE < min(r["scales"]) and max(r["scales"]) < MAX_SCALE and r["det"] > 0 and r["nmi"] > MIN_NMI
-    d = dice_scores(seg.labels, ants.labels())
+    d = dice_scores(labels, ants.labels())
     # 4 mm voxels: CSF (1-3 mm) and skull (4-7 mm) are mostly partial volume; 2 mm figures are in
     # experiments/results/segmentation_heldout_*.md
     assert d["brain"] > 0.9 and d["scalp"] > 0.85, d
@@ -149,9 +149,9 @@ def test_lps_scan_segments_as_its_ras_twin(ants, cache):
     flip[:2, 3] = n[:2] - 1
     lps = Volume(vol.data[::-1, ::-1], vol.affine @ flip)
     seg = segment(lps, None, cfg)
-    back = LabelMap(seg.labels.labels[::-1, ::-1], vol.affine)
+    back = LabelMap(seg.labels[::-1, ::-1], vol.affine)
     truth = ants.labels()
-    d_ras, d_lps = dice_scores(ras.labels, truth), dice_scores(back, truth)
+    d_ras, d_lps = dice_scores(ras, truth), dice_scores(back, truth)
     # Not bit-identical: the registration's random voxel sample and the block-averaging pyramid start at
     # the array's first voxel, which differ between the twins. At 4 mm the 1-3 mm CSF is all partial
     # volume and its Dice moves by several hundredths with such grid phases (measured 0.31 vs 0.26);

@@ -3,7 +3,8 @@
 A fit uses a mesh coarse enough to solve many times; the data come from the head, which a finer
 mesh represents better. Their difference eps(sigma) = V_accurate(sigma) - V_reduced(sigma) is a
 modelling error, not noise, and a least-squares fit pushes it into the conductivities (on the
-phantom head, 1 % voltage mismatch moved brain and CSF by 9 %). The Bayesian approximation-error
+phantom head, a voltage mismatch of about 1 % biased brain and CSF several times more:
+experiments/results/cross_mesh_fit.txt). The Bayesian approximation-error
 approach (Kaipio & Somersalo 2005, Statistical and Computational Inverse Problems, sec. 7.4;
 Kaipio & Somersalo 2007, J. Comput. Appl. Math. 198:493; for EIT Nissinen, Heikkinen & Kaipio
 2008, Meas. Sci. Technol. 19:015501) draws conductivities from a prior, computes eps on each draw
@@ -14,10 +15,10 @@ down-weights the channel patterns the reduced model cannot be trusted on.
 
 What it does not cover: errors the two models share. If the head's geometry differs from both
 (segmentation, surface extraction), that error stays, and the fit's standard errors, which now
-include only the modelled part, understate it. On the phantom head (experiments/cross_mesh_fit.py)
-the model removed a mesh-discretisation bias of 9 % in brain and CSF to below 0.2 %, but data
-from other surfaces of the same label map (voltages 0.8 % apart) still moved brain and CSF by
-13-55 % with standard errors of 0.1-0.4 %; skull and scalp stayed within 4 %.
+include only the modelled part, understate it. On the phantom head the model removed the
+mesh-discretisation bias in brain and CSF, but data from other surfaces of the same label map
+still moved brain and CSF by far more than their standard errors
+(experiments/results/cross_mesh_fit.txt, from experiments/cross_mesh_fit.py).
 
 `approximation_error` builds the estimate (one solve per draw and model);
 `fit_conductivities(..., approx_error=...)` uses it. The accurate model is typically a refined
@@ -31,6 +32,7 @@ import equinox as eqx
 import numpy as np
 
 from ..fem import simulate
+from ..protocol import Protocol
 from ..tissue import default_sigma
 
 
@@ -115,20 +117,30 @@ def sample_conductivities(n: int, *, centre=None, log_sd=0.25, seed: int = 0) ->
     return c * np.exp(sd * z)
 
 
-def approximation_error(accurate, reduced, protocol, sigma_samples) -> ApproximationError:
+def approximation_error(accurate, reduced, sigma_samples, protocol) -> ApproximationError:
     """Estimate the reduced model's approximation error over prior draws of the conductivities.
+
+    Argument order as `simulate(model, sigma, protocol)`: the models, then the conductivities,
+    then the protocol.
 
     Arguments:
         accurate: `ForwardModel` that stands in for the head (a finer mesh of it).
         reduced: `ForwardModel` the fits will use; same electrodes (count and order) as `accurate`.
-        protocol: the `Protocol` of the measurements.
         sigma_samples: (n_samples, 4) conductivities in S/m (`sample_conductivities`); 20-50 draws
             are usual (the covariance has rank n_samples - 1).
+        protocol: the `Protocol` of the measurements.
 
     Returns:
         A `ApproximationError`.
     """
 
+    if isinstance(sigma_samples, Protocol) and not isinstance(protocol, Protocol):
+        raise ValueError("approximation_error takes (accurate, reduced, sigma_samples, protocol) "
+                         "since issue 16 (the order of simulate); the protocol came third: swap "
+                         "the last two arguments.")
+    if not isinstance(protocol, Protocol):
+        raise ValueError(f"`protocol` must be a Protocol (e.g. jaxhead.adjacent(n)), got "
+                         f"{type(protocol).__name__}.")
     s = np.asarray(sigma_samples, dtype=np.float64)
     if s.ndim != 2 or s.shape[1] != 4 or s.shape[0] < 2:
         raise ValueError(f"`sigma_samples` has shape {s.shape}; pass (n_samples >= 2, 4) "

@@ -39,7 +39,7 @@ from .._files import atomic_write_path
 from ..phantom import make_head
 from ..plot import plot_image_cut, plot_mesh_cut, plot_overlay, plot_scalp_potential
 from ..protocol import load_voltages, protocol_from_config, save_voltages
-from ..segmentation import dice_scores, segment
+from ..segmentation import dice_scores, segment_reported
 from ..tissue import TISSUES, Tissue, sigma_per_tet
 from .config import RunConfig
 from .declare import stage
@@ -81,16 +81,16 @@ def run_segment(cfg: RunConfig, subject: Subject) -> dict:
     """Atlas registration + EM/MRF segmentation into brain, CSF, skull, scalp (and Dice vs truth)."""
     volume = io.load_volume(subject.file("input", "scan.nii.gz"))
     seg_cfg = dataclasses.replace(cfg.segment, modality=subject.modality)
-    seg = segment(volume, None, seg_cfg)
+    labels, seg = segment_reported(volume, None, seg_cfg)
     out = subject.dir("segment")
-    io.save_labels(seg.labels, out / "labels.nii.gz")
-    plot_overlay(volume, seg.labels, out / "segmentation.png",
+    io.save_labels(labels, out / "labels.nii.gz")
+    plot_overlay(volume, labels, out / "segmentation.png",
                  title=f"{subject.name}: {subject.modality.upper()} segmentation ({seg.atlas_name} atlas)")
     summary = {"atlas": seg.atlas_name, "registration": seg.registration,
-               "voxels": {t.name.lower(): int((seg.labels.labels == int(t)).sum()) for t in TISSUES}}
+               "voxels": {t.name.lower(): int((labels.labels == int(t)).sum()) for t in TISSUES}}
     truth_path = subject.file("input", "labels.nii.gz")
     if truth_path.exists():
-        dice = dice_scores(seg.labels, io.load_labels(truth_path))  # a truth on another grid is an error
+        dice = dice_scores(labels, io.load_labels(truth_path))  # a truth on another grid is an error
         summary["dice_vs_truth"] = dice
         _write_text(out / "dice.txt", f"atlas  {seg.atlas_name}\n"
                     + "".join(f"{k:<6} {v:.4f}\n" for k, v in dice.items()))
@@ -384,7 +384,7 @@ def _approx_error(cfg: RunConfig, electrodes, model, protocol, sigma):
     accurate = build_forward_model(fine, fine_el, solver=_solver(cfg.forward.solver))
     draws = sample_conductivities(cfg.inverse.approx_error_draws, centre=sigma,
                                   seed=cfg.inverse.seed + 2)
-    return approximation_error(accurate, model, protocol, draws)
+    return approximation_error(accurate, model, draws, protocol)
 
 
 def _solver(name: str):

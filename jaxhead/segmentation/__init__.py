@@ -1,4 +1,5 @@
-"""Segmentation of head MRI/CT: atlas, registration, EM with MRF and bias field, `segment`.
+"""Segmentation of head MRI/CT: atlas, registration, EM with MRF and bias field, `segment`
+(and `segment_reported`, which returns the fitted model too).
 
 (The post-processing into nested layers is `jaxhead.geometry.make_layers`.)
 """
@@ -27,6 +28,7 @@ from .segment import (
     register_atlas,
     registration_summary,
     segment,
+    segment_reported,
 )
 from .templates import Anatomy, ants_anatomy, mni152_anatomy, rasterise, read_jnifti, render
 
@@ -36,5 +38,5 @@ __all__ = [
     "render", "BSplineTransform", "EMOptions", "EMResult", "MixtureParams",
     "RegisterConfig", "SegmentConfig", "Segmentation", "affine_register", "bspline_register",
     "build_atlas", "cache_dir", "classify", "default_atlas", "fit_mixture", "infer_posteriors", "mean_field",
-    "neighbour_sum", "potts_energy", "register", "register_atlas", "resample", "segment", "warp_volume",
+    "neighbour_sum", "potts_energy", "register", "register_atlas", "resample", "segment", "segment_reported", "warp_volume",
 ]

@@ -1,4 +1,4 @@
-"""`segment`: atlas registration + EM/MRF tissue classification of a head MRI or CT.  [jax]
+"""`segment` (and `segment_reported`): atlas registration + EM/MRF tissue classification of a head MRI or CT.  [jax]
 
 Pipeline (one method for both modalities, as the seed's CT branch: Vonach et al. 2012):
 
@@ -78,10 +78,10 @@ DEFAULT_GAUSSIANS = {"mri": (2, 2, 2, 3, 3), "ct": (2, 1, 2, 2, 3)}
 #: white 2, CSF 1, skull tables + diploe 2, scalp skin/muscle + fat 2; CT: air 1, brain 1, CSF 1,
 #: skull cortical + diploe 2, scalp fat + skin/muscle 2), and every pair of bordering layers in
 #: PV_PAIRS adds two tied partial-volume Gaussians (one per class; em.py), so that boundary voxels
-#: go to the tissue that fills more than half of them. Measured (experiments/segmentation_accuracy.py,
-#: 2 mm, 3 subjects): CT scalp 0.94 -> 0.97 (air/skin boundary) and MRI at 6 % noise better; MRI
-#: skull at 3 % (0.87 -> 0.85) and CT CSF (0.75 -> 0.42: the mixing line is drawn to the nearest pure
-#: skull Gaussian, the diploe, not the inner table that borders CSF) worse; so it is off by default.
+#: go to the tissue that fills more than half of them. Measured (experiments/results/
+#: segmentation_accuracy.md, "with PV Gaussians"): CT scalp (air/skin boundary) and MRI at 6 % noise
+#: better; MRI skull at 3 % and CT CSF worse (the mixing line is drawn to the nearest pure skull
+#: Gaussian, the diploe, not the inner table that borders CSF); so it is off by default.
 DEFAULT_GAUSSIANS_PV = {"mri": (2, 2, 1, 2, 2), "ct": (1, 1, 1, 2, 2)}
 #: Bordering layers of a head, outside in (the classes are nested: air | scalp | skull | CSF | brain).
 PV_PAIRS = (
@@ -225,10 +225,10 @@ class SegmentConfig:
 
 
 class Segmentation(eqx.Module):
-    """Result of `segment`.
+    """The report of `segment_reported`: the fitted tissue model behind the labels.
 
     Arguments:
-        labels: LabelMap of Tissue values (BACKGROUND, BRAIN, CSF, SKULL, SCALP) on the scan's grid.
+        labels: the same LabelMap of Tissue values (BACKGROUND, BRAIN, CSF, SKULL, SCALP) on the scan's grid.
         posteriors: (5, x, y, z) float32 class posteriors, ordered as Tissue values.
         transform: the atlas registration (scan mm -> atlas mm).
         params: fitted Gaussian mixture (means/variances in log intensity for MRI, HU for CT).
@@ -543,15 +543,18 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig()):
     return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape))
 
 
-def segment(volume: Volume, atlas: Atlas | None = None, cfg: SegmentConfig = SegmentConfig()) -> Segmentation:
-    """Segment a head MRI or CT into BACKGROUND, BRAIN, CSF, SKULL and SCALP.
+def segment_reported(volume: Volume, atlas: Atlas | None = None,
+                     cfg: SegmentConfig = SegmentConfig()) -> tuple[LabelMap, Segmentation]:
+    """Segment a head MRI or CT into BACKGROUND, BRAIN, CSF, SKULL and SCALP, with the fitted model.
 
     Arguments:
         volume: the scan (MRI: magnitude, arbitrary units; CT: Hounsfield units).
         atlas: an Atlas of the same modality; None uses `default_atlas(cfg.modality)` (cached).
         cfg: SegmentConfig.
     Returns:
-        Segmentation (labels, posteriors, transform, mixture parameters, bias field).
+        (labels, report): the LabelMap of Tissue values on the scan's grid, and a Segmentation
+        (posteriors, transform, mixture parameters, bias field, EM iterations, atlas, registration
+        figures).
     """
     _check_inputs(volume, atlas, cfg)
     _dtype(cfg)
@@ -578,11 +581,29 @@ def segment(volume: Volume, atlas: Atlas | None = None, cfg: SegmentConfig = Seg
     else:
         bias = np.ones(volume.shape) if cfg.modality == "mri" else np.zeros(volume.shape)
     params = jax.tree.map(np.asarray, res.params)
-    return Segmentation(
+    return labels, Segmentation(
         labels=labels, posteriors=post, transform=transform, params=params, component_class=opts.component_class,
         bias_field=bias, n_iter=int(res.n_iter), converged=bool(res.converged), atlas_name=atlas.name,
         registration=summary,
     )
+
+
+def segment(volume: Volume, atlas: Atlas | None = None, cfg: SegmentConfig = SegmentConfig()) -> LabelMap:
+    """Segment a head MRI or CT into BACKGROUND, BRAIN, CSF, SKULL and SCALP.
+
+    `segment_reported` returns the fitted model (posteriors, registration, mixture) too.
+
+    Arguments:
+        volume: the scan (MRI: magnitude, arbitrary units; CT: Hounsfield units).
+        atlas: an Atlas of the same modality; None uses `default_atlas(cfg.modality)` (cached).
+        cfg: SegmentConfig.
+    Returns:
+        LabelMap of Tissue values (BACKGROUND, BRAIN, CSF, SKULL, SCALP) on the scan's grid.
+    """
+    labels, report = segment_reported(volume, atlas, cfg)
+    log.info("segmented with the %s atlas: %d EM iterations (converged: %s)", report.atlas_name,
+             report.n_iter, report.converged)
+    return labels
 
 
 def _coords(shape, padded, stride, dtype):
