@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxhead.geometry import MeshConfig, TetMesh, tetrahedralize, tetrahedralize_reported
+from jaxhead.geometry import MeshConfig, TetMesh, enclosed_volume, tetrahedralize, tetrahedralize_reported
 from jaxhead.geometry.refine import refine_surface
 from jaxhead.geometry.surface import Surface
 from jaxhead.tissue import TISSUES, Tissue
@@ -289,7 +289,7 @@ def test_refine_surface_bisects_near_points_only():
     assert n > 0 and len(F2) == len(F) + 2 * n and len(V2) == len(V) + n
     np.testing.assert_array_equal(V2[:len(V)], V)
     assert _faces_closed_oriented(F2)
-    assert T._enclosed_volume(V2, F2) == pytest.approx(T._enclosed_volume(V, F), rel=1e-12)
+    assert enclosed_volume(V2, F2) == pytest.approx(enclosed_volume(V, F), rel=1e-12)
     e = np.sort(np.stack([F2, np.roll(F2, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
     e = np.unique(e, axis=0)
     mid = 0.5 * (V2[e[:, 0]] + V2[e[:, 1]])

@@ -117,11 +117,6 @@ def tet_stiffness(nodes_m, tets):
     return _stiffness_from_points(nodes_m[tets])
 
 
-def tet_volumes(nodes_m, tets):
-    """Signed tet volumes in m^3, shape (n_tets,)."""
-    return tet_geometry(nodes_m, tets)[1] / 6.0
-
-
 def tet_field_gradients(nodes_m, tets, u):
     """Gradients of P1 fields on each tet.
 

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry.tetmesh import TetMesh
+from ..geometry.tetmesh import TetMesh, signed_volumes
 from ..tissue import TISSUES, default_sigma
 from .assembly import (
     TET_PAIRS,
@@ -29,7 +29,6 @@ from .assembly import (
     scatter_plan,
     tet_geometry,
     tet_stiffness,
-    tet_volumes,
     to_metres,
 )
 from .cem import (
@@ -290,7 +289,7 @@ def _stiffness(model: ForwardModel, x, nodes):
     if nodes is None:
         return k1  # the mesh's own nodes: checked by TetMesh
     # Inverted or flat tets make the matrix indefinite: an error, not a wrong answer.
-    return eqx.error_if(k1, jnp.any(~(tet_volumes(x, model.tets) > 0)),
+    return eqx.error_if(k1, jnp.any(~(signed_volumes(x, model.tets) > 0)),
                         "`nodes` inverts or flattens some tets (volume <= 0); the FEM needs "
                         "every tet positively oriented.")
 

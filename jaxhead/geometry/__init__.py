@@ -25,6 +25,7 @@ from .surface import extract_surfaces_reported as extract_surfaces_reported
 from .tetmesh import TetMesh as TetMesh
 from .tetmesh import face_adjacency as face_adjacency
 from .tetmesh import orient_tets as orient_tets
+from .tetmesh import enclosed_volume as enclosed_volume
 from .tetmesh import signed_volumes as signed_volumes
 from .tetrahedralize import MeshConfig as MeshConfig
 from .tetrahedralize import MeshReport as MeshReport
@@ -33,7 +34,7 @@ from .tetrahedralize import tetrahedralize_reported as tetrahedralize_reported
 
 __all__ = [
     "LayerConfig", "LayerReport", "MeshConfig", "MeshReport", "QualityReport", "Surface",
-    "SurfaceConfig", "SurfaceReport", "TetMesh", "check_surface", "extract_surfaces",
+    "SurfaceConfig", "SurfaceReport", "TetMesh", "check_surface", "enclosed_volume", "extract_surfaces",
     "extract_surfaces_reported", "face_adjacency", "improve_mesh", "make_layers",
     "make_layers_reported", "metrics", "orient_tets", "outside_range", "pad_labels",
     "quality_report", "signed_volumes", "tet_metrics", "tetrahedralize", "tetrahedralize_reported",

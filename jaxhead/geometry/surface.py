@@ -57,6 +57,7 @@ from skimage.measure import marching_cubes
 
 from ..tissue import TISSUES, Tissue, per_tissue
 from ..volume import LabelMap
+from .tetmesh import enclosed_volume
 
 log = logging.getLogger(__name__)
 
@@ -277,8 +278,7 @@ def to_trimesh(surface: Surface):
 
 def surface_volume_mm3(surface: Surface) -> float:
     """Signed enclosed volume in mm^3 (divergence theorem); positive for an outward surface."""
-    p = surface.vertices[surface.faces]
-    return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
+    return enclosed_volume(surface.vertices, surface.faces)
 
 
 def surface_area_mm2(surface: Surface) -> float:

@@ -1,6 +1,9 @@
-"""The labelled tetrahedral mesh type and its topology helpers (orientation, face adjacency).  [host]"""
+"""The labelled tetrahedral mesh type and its helpers: the package's one tet-volume formula
+(`signed_volumes`, NumPy or JAX), enclosed volumes, orientation, face adjacency.  [host]"""
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..tissue import TISSUES, Tissue
@@ -10,11 +13,46 @@ from ..tissue import TISSUES, Tissue
 _TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
 
 
-def signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Signed tet volumes in mm^3, shape (n_tets,): positive for positive orientation."""
-    p = np.asarray(nodes)[np.asarray(tets)]
+def signed_volumes(nodes, tets):
+    """Signed tet volumes ((P1 - P0) x (P2 - P0)) . (P3 - P0) / 6, shape (n_tets,).
+
+    The package's one tet-volume formula (the FEM's Jacobian check, mesh volumes, the study's
+    extension operator and the mesh improvement all call it; `tet_metrics` and the FEM's element
+    matrices reuse the determinant they need anyway).
+
+    Arguments:
+        nodes: (n_nodes, 3) positions; the volumes are in their unit cubed (mm^3 for a TetMesh,
+            m^3 for the FEM's nodes).
+        tets: (n_tets, 4) node indices.
+
+    Returns:
+        (n_tets,) volumes, positive for a positively oriented tet (P3 on the side of the face
+        P0 P1 P2 that its counter-clockwise normal points to), negative when two nodes are swapped.
+        NumPy in, NumPy out; a JAX array (or tracer) in, JAX out (differentiable in `nodes`).
+    """
+    xp = jnp if isinstance(nodes, jax.Array) or isinstance(tets, jax.Array) else np
+    p = xp.asarray(nodes)[xp.asarray(tets)]
     d1, d2, d3 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
-    return np.einsum("ij,ij->i", np.cross(d1, d2), d3) / 6.0
+    return xp.einsum("ij,ij->i", xp.cross(d1, d2), d3) / 6.0
+
+
+def enclosed_volume(vertices, faces) -> float:
+    """Signed volume enclosed by a closed triangle surface (divergence theorem).
+
+    The sum of the signed volumes of the tets (apex, face) with the apex at the vertices' mean
+    (any apex gives the same sum on a closed surface; a near one keeps the rounding small).
+
+    Arguments:
+        vertices: (n, 3) positions; faces: (m, 3) vertex indices of a closed surface.
+
+    Returns:
+        The volume in the vertices' unit cubed: positive when the faces are counter-clockwise
+        seen from outside (outward normals), negative when they are all reversed.
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64)
+    apex = np.full((len(F), 1), len(V))
+    return float(signed_volumes(np.vstack([V, V.mean(axis=0)]), np.hstack([apex, F])).sum())
 
 
 def orient_tets(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, int]:
@@ -99,11 +137,6 @@ class TetMesh(eqx.Module):
         """Tet centroids in mm, shape (n_tets, 3)."""
         return self.nodes[self.tets].mean(axis=1)
 
-    def _all_faces(self) -> tuple[np.ndarray, np.ndarray]:
-        faces = self.tets[:, _TET_FACES].reshape(-1, 3)
-        owner = np.repeat(np.arange(self.n_tets), 4)
-        return faces, owner
-
     def boundary_faces(self) -> tuple[np.ndarray, np.ndarray]:
         """Faces on the mesh's outer boundary, outward oriented.
 
@@ -111,21 +144,13 @@ class TetMesh(eqx.Module):
             faces: (n_faces, 3) node indices, counter-clockwise seen from outside.
             tet: (n_faces,) index of the tet each face belongs to.
         """
-        faces, owner = self._all_faces()
-        key = np.sort(faces, axis=1)
-        _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-        once = counts[inv.ravel()] == 1
-        return faces[once], owner[once]
+        faces, owner, _, _, boundary = face_adjacency(self.tets)
+        return faces[boundary], owner[boundary]
 
     def interface_faces(self, inner: Tissue | str | int, outer: Tissue | str | int) -> np.ndarray:
         """Faces shared by a tet of `inner` and a tet of `outer`, oriented from inner to outer."""
         a, b = int(Tissue.parse(inner)), int(Tissue.parse(outer))
-        faces, owner = self._all_faces()
-        key = np.sort(faces, axis=1)
-        order = np.lexsort(key.T[::-1])
-        ks = key[order]
-        same = np.all(ks[1:] == ks[:-1], axis=1)
-        i, j = order[:-1][same], order[1:][same]
+        faces, owner, i, j, _ = face_adjacency(self.tets)
         li, lj = self.labels[owner[i]], self.labels[owner[j]]
         pick_i = (li == a) & (lj == b)
         pick_j = (lj == a) & (li == b)
@@ -136,17 +161,17 @@ class TetMesh(eqx.Module):
         return np.unique(self.boundary_faces()[0])
 
 
-# ---------------------------------------------------------------------------------------------
-# tetrahedralize: nested surfaces -> labelled tetrahedral mesh (fTetWild, then improvement)
-
-
 def face_adjacency(tets: np.ndarray):
-    """All tet faces and which pairs of tets share one.
+    """All tet faces and which pairs of tets share one (the package's one face-matching routine).
+
+    Arguments:
+        tets: (m, 4) node indices of a conforming mesh (an interior face shared by two tets).
 
     Returns:
         faces: (4 m, 3) local faces (outward for positive tets); owner: (4 m,) tet of each face;
         i, j: indices into faces of the two copies of every interior face; boundary: (4 m,) bool.
     """
+    tets = np.asarray(tets)
     faces = tets[:, _TET_FACES].reshape(-1, 3)
     owner = np.repeat(np.arange(len(tets)), 4)
     key = np.sort(faces, axis=1)

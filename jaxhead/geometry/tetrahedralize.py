@@ -36,7 +36,7 @@ from .mesher_gmsh import mesh_gmsh
 from .mesher_tetgen import mesh_tetgen
 from .refine import refine_surface
 from .surface import Surface
-from .tetmesh import TetMesh, face_adjacency, orient_tets, signed_volumes
+from .tetmesh import TetMesh, enclosed_volume, face_adjacency, orient_tets, signed_volumes
 
 log = logging.getLogger(__name__)
 
@@ -45,18 +45,14 @@ log = logging.getLogger(__name__)
 #: shell is one to two tets thick; the brain, the largest compartment and the one scalp EIT is
 #: least sensitive to, grades from its 6 mm surface to 10 mm inside. The element budget is the
 #: seed paper's (~300k tets for an adult head, Vonach et al. 2012 Table 2). The tet count follows
-#: the surfaces more than these edges (fTetWild keeps every surface triangle): finer surfaces
-#: (the former 3/2/2.5/3 mm) gave 2.13M tets on the 1 mm MRI phantom; these defaults give 259k
-#: tets there, 0 outside Table 2, tissue volumes within 1.2 % of the voxels'
-#: (``benchmarks/mesh.py``).
+#: the surfaces more than these edges (fTetWild keeps every surface triangle); the measurements
+#: behind these values are in experiments/results/meshers.md.
 DEFAULT_EDGE_MM = {"brain": 10.0, "csf": 4.0, "skull": 4.5, "scalp": 6.0}
 
-#: The meshers, in the order "auto" tries them (benchmarks/mesh.py, 2 mm phantom, 2 shared cores,
-#: load ~1.5; tetrahedralize in total, Table-2 counts before the improvement step, 0 after each):
-#: gmsh 11.7 s, 125k tets, 99 below scaled Jacobian 0.2; TetGen 8.4 s, 189k tets, 1,270 (and
-#: 2,172 above condition 3); fTetWild 119 s, 261k tets, 0. gmsh comes first although TetGen was
-#: faster there: its raw mesh is nearly clean, so less rests on the improvement step, and its
-#: licence (GPL) is less demanding than TetGen's (AGPL). Both are optional extras (copyleft);
+#: The meshers, in the order "auto" tries them (measured with benchmarks/mesh.py:
+#: experiments/results/meshers.md). gmsh comes first although TetGen can be faster: its raw mesh
+#: is nearly clean, so less rests on the improvement step, and its licence (GPL) is less
+#: demanding than TetGen's (AGPL); fTetWild is an order of magnitude slower. Both are optional extras (copyleft);
 #: fTetWild (MPL-2.0) is always installed.
 MESHERS = ("gmsh", "tetgen", "ftetwild")
 _MODULES = {"gmsh": "gmsh", "tetgen": "tetgen", "ftetwild": "pytetwild"}
@@ -306,18 +302,12 @@ def _check_surfaces(surfaces) -> list[tuple[np.ndarray, np.ndarray]]:
                 f"the {t.name} surface is not a closed, consistently oriented manifold "
                 f"({n_open} boundary half-edges, {int((cnt > 1).sum())} repeated directed edges); "
                 "repair it (extract_surfaces does) before meshing.")
-        vol = _enclosed_volume(V, F)
+        vol = enclosed_volume(V, F)
         if not vol > 0:
             raise ValueError(f"the {t.name} surface encloses volume {vol:.3g} mm^3 <= 0: its faces "
                              "must be counter-clockwise seen from outside (flip them).")
         out.append((V, F))
     return out
-
-
-def _enclosed_volume(V: np.ndarray, F: np.ndarray) -> float:
-    """Volume enclosed by a closed outward surface (divergence theorem), mm^3."""
-    p = V[F]
-    return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
 
 
 def _winding(V, F, Q) -> np.ndarray:
@@ -557,7 +547,7 @@ def _diagnose_failure(surfs, envelope_mm, cfg) -> str:
             nodes, tets = pytetwild.tetrahedralize(
                 V, F.astype(np.int32), edge_length_abs=diag / 10, epsilon=envelope_mm / diag,
                 optimize=False, quiet=True, num_threads=int(cfg.threads))
-            ok = len(tets) > 0 and abs(np.abs(signed_volumes(nodes, tets)).sum() / _enclosed_volume(V, F) - 1) < 0.2
+            ok = len(tets) > 0 and abs(np.abs(signed_volumes(nodes, tets)).sum() / enclosed_volume(V, F) - 1) < 0.2
         except Exception:
             ok = False
         if not ok:
@@ -731,7 +721,7 @@ def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -
     mesh = TetMesh(nodes, tets, labels)
     dev = _interface_deviation(nodes, tets, labels, dists)
     vols = mesh.tissue_volumes_mm3()
-    enclosed = [_enclosed_volume(*s) for s in surfs]
+    enclosed = [enclosed_volume(*s) for s in surfs]
     surf_vol = {t: enclosed[k] - (enclosed[k - 1] if k else 0.0) for k, t in enumerate(TISSUES)}
     report = MeshReport(
         mesher=mesher, n_nodes=mesh.n_nodes, n_tets=mesh.n_tets,

@@ -25,7 +25,7 @@ from nibabel.spatialimages import HeaderDataError
 
 from .._files import atomic_write_path
 from ..geometry.surface import Surface
-from ..geometry.tetmesh import TetMesh, orient_tets
+from ..geometry.tetmesh import TetMesh, face_adjacency, orient_tets
 from ..tissue import TISSUES, Tissue
 from .measurements import LENGTH_UNITS, mat73_arrays
 
@@ -363,10 +363,8 @@ def head_facing(nodes: np.ndarray, tets: np.ndarray) -> dict:
         (anterior direction's angle from +y, counter-clockwise seen from above),
         "neck_offset_mm" (neck centroid minus upper-head centroid, (2,) xy mm).
     """
-    f = np.concatenate([tets[:, [0, 1, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 3]],
-                        tets[:, [1, 2, 3]]])
-    u, c = np.unique(np.sort(f, axis=1), axis=0, return_counts=True)
-    p = nodes[np.unique(u[c == 1])]
+    faces, _, _, _, boundary = face_adjacency(tets)
+    p = nodes[np.unique(faces[boundary])]
     z0, z1 = p[:, 2].min(), p[:, 2].max()
     h = z1 - z0
     d = p[p[:, 2] <= z0 + 0.15 * h, :2].mean(0) - p[p[:, 2] >= z1 - 0.5 * h, :2].mean(0)

@@ -28,12 +28,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..geometry import TetMesh, tet_metrics
+from ..geometry import TetMesh, face_adjacency, signed_volumes, tet_metrics
 from ..geometry.quality import outside_range
 from ..tissue import TISSUES, Tissue
-
-# Local faces of a positively oriented tet, each outward (as jaxhead.geometry.tetmesh).
-_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
 
 
 class MorphError(ValueError):
@@ -79,18 +76,10 @@ def interface_surfaces(mesh: TetMesh) -> dict[Tissue, Interface]:
     Returns:
         {Tissue: Interface} for every tissue present whose surface is non-empty.
     """
-    tets, labels = mesh.tets, mesh.labels
-    faces = tets[:, _FACES].reshape(-1, 3)
-    owner_label = np.repeat(labels, 4)
-    key = np.sort(faces, axis=1)
-    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    faces, owner, a, b, _ = face_adjacency(mesh.tets)
+    owner_label = mesh.labels[owner]
     # label on the other side of each face (0 = outside the mesh)
     other = np.zeros(len(faces), np.int64)
-    order = np.argsort(inv, kind="stable")
-    si = inv[order]
-    pair = np.flatnonzero(si[1:] == si[:-1])
-    a, b = order[pair], order[pair + 1]
     other[a], other[b] = owner_label[b], owner_label[a]
     out = {}
     for t in TISSUES:
@@ -129,8 +118,7 @@ def laplacian(nodes, tets, *, stiffening: float = 0.0) -> sp.csr_matrix:
     tets = np.asarray(tets, dtype=np.int64)
     p = x[tets]
     M = np.concatenate([np.ones((len(tets), 4, 1)), p], axis=2)  # rows [1, x, y, z]
-    det = np.linalg.det(M)
-    vol = np.abs(det) / 6.0
+    vol = np.abs(signed_volumes(x, tets))
     G = np.linalg.inv(M)[:, 1:, :]  # (n, 3, 4): gradients of the 4 barycentric functions
     w = (vol.mean() / vol) ** float(stiffening) if stiffening else np.ones(len(tets))
     Ke = (w * vol)[:, None, None] * np.einsum("nka,nkb->nab", G, G)
