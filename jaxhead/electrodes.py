@@ -797,9 +797,9 @@ class ElectrodeConfig:
         max_distance_mm: positions farther from the scalp are an error.
         refine_mesh: the pipeline's mesh stage refines the mesh under these electrodes
             (`MeshConfig.refine_edge_mm` within `refine_radius_mm`, at least the electrode
-            radius plus two refined edges). On the 2 mm phantom head this cut the voltage
-            difference to a 1.3M-tet reference from 3.3 % to 1.1 % for 17 % more tets: the
-            potential varies fastest at the electrodes (the CEM's edge singularity).
+            radius plus two refined edges): the potential varies fastest at the electrodes (the
+            CEM's edge singularity), and refining there is what brings a head mesh close to a
+            much finer reference (experiments/results/mesh_convergence.md).
     """
 
     layout: str | int | tuple[str, ...] = "10-20"

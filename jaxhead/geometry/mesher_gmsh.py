@@ -17,21 +17,18 @@ import numpy as np
 
 from ..tissue import TISSUES
 
-#: gmsh options. The 3D algorithm is HXT (``Mesh.Algorithm3D`` = 10): on the 2 mm phantom's surfaces,
-#: with one size cap (10 mm) and no fields, it gave 129k tets in 0.5 s with 74 below the Table-2
-#: limits, gmsh's Delaunay (1) 126k in 3.1 s with 559; with the per-shell fields and threshold 0.5
-#: below, 125k tets in 8.6 s with 99 (benchmarks/mesh.py). Sizes come from the fields and the
-#: boundary only.
+#: gmsh options. The 3D algorithm is HXT (``Mesh.Algorithm3D`` = 10): on the 2 mm phantom's surfaces
+#: it was faster than gmsh's Delaunay (1) and left fewer tets outside the Table-2 limits
+#: (experiments/results/meshers.md). Sizes come from the fields and the boundary only.
 _OPTIONS = {
     "Mesh.MeshSizeFromPoints": 0,
     "Mesh.MeshSizeFromCurvature": 0,
     "Mesh.MeshSizeExtendFromBoundary": 1,
     "Mesh.Algorithm3D": 10,
     "Mesh.Optimize": 1,
-    # gmsh optimises the tets whose quality (gamma) is below this (default 0.3): on the nested
-    # spheres with a refine point, 0.5 left 49 tets below the Table-2 limits that the
-    # improvement step then mended; 0.3 left 52 of which 4 stayed. It is most of gmsh's time: on
-    # the 2 mm phantom 10.4 s at 0.5 against 0.7 s at 0.3 (with the same size fields).
+    # gmsh optimises the tets whose quality (gamma) is below this (default 0.3): 0.5 leaves
+    # only tets the improvement step mends, 0.3 did not; it is most of gmsh's time
+    # (experiments/results/meshers.md).
     "Mesh.OptimizeThreshold": 0.5,
 }
 

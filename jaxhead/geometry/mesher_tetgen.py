@@ -3,12 +3,11 @@
 TetGen (Si 2015, ACM TOMS 41:11; AGPL-3.0, an optional extra: ``pip install jaxhead[tetgen]``,
 through the ``tetgen`` wheel) meshes the four nested surfaces as one piecewise linear complex
 with a region seed (and a maximum tet volume) per shell: the input triangles are mesh faces, each
-tet's tissue is its region's. Settings, measured on the 2 mm phantom's surfaces
-(benchmarks/mesh.py): quality refinement at radius-edge ratio 1.5 with the surfaces kept as given
-(``-Y``, ``nobisect``): 189k tets in 2.1 s, 1,386 below scaled Jacobian 0.2; letting TetGen split
-surface triangles (no ``-Y``) gave 315k tets with 10,648 below 0.2 (its Steiner points on the
-surfaces leave slivers against them). Ten optimisation passes with flips up to level 5
-(``-O5/7``-like) bring the 1,386 to 1,270.
+tet's tissue is its region's. Settings (measured on the 2 mm phantom's surfaces:
+experiments/results/meshers.md): quality refinement at radius-edge ratio 1.5 with the surfaces
+kept as given (``-Y``, ``nobisect``), since letting TetGen split surface triangles (no ``-Y``)
+leaves many more slivers (its Steiner points on the surfaces); ten optimisation passes with flips
+up to level 5 (``-O5/7``-like).
 
 Sizing: TetGen's background-mesh sizing (``-m``) crashes the wheel (pyvista/tetgen#65), so the
 refinement around refine points comes from the surfaces, refined there beforehand

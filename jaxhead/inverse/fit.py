@@ -114,12 +114,12 @@ class LineSearchGaussNewton(optx.AbstractGaussNewton):
     """Gauss-Newton directions with a backtracking Armijo line search (an optimistix solver).
 
     Each step solves the linearised least-squares problem exactly (lineax QR), then halves the
-    step until the loss decreases enough (Armijo). On the four-tissue fits of
-    benchmarks/fit.py it converges in 11-16 steps and 14-24 forward solves where
-    `optx.LevenbergMarquardt` takes 23-37 steps and 54-81 solves, to the same estimates: for
-    small-residual problems with a full-rank Jacobian the Gauss-Newton step is nearly the Newton
-    step (Nocedal & Wright 2006, sec. 10.3). It is `fit_conductivities`' default; prefer
-    Levenberg-Marquardt when the Jacobian may be rank-deficient (a tissue the data do not see).
+    step until the loss decreases enough (Armijo). On the four-tissue fits of benchmarks/fit.py
+    it needs a fraction of `optx.LevenbergMarquardt`'s forward solves, to the same estimates
+    (experiments/results/fit_solvers.md): for small-residual problems with a full-rank Jacobian
+    the Gauss-Newton step is nearly the Newton step (Nocedal & Wright 2006, sec. 10.3). It is
+    `fit_conductivities`' default; prefer Levenberg-Marquardt when the Jacobian may be
+    rank-deficient (a tissue the data do not see).
 
     Arguments:
         rtol, atol: optimistix's Cauchy termination tolerances.
@@ -285,7 +285,7 @@ def _prepare(model, protocol, measured, *, init, fit, contact_impedance, noise_s
     else:
         if not isinstance(approx_error, ApproximationError):
             raise ValueError("`approx_error` must be an ApproximationError (from jaxhead."
-                             "approximation_error(accurate, reduced, protocol, ...)), got "
+                             "approximation_error(accurate, reduced, sigma_samples, protocol)), got "
                              f"{type(approx_error).__name__}.")
         if approx_error.mean.shape != (n_rows,):
             raise ValueError(f"`approx_error` has {approx_error.mean.shape[0]} rows; the "
@@ -502,8 +502,7 @@ def fit_conductivities(model, protocol, measured, *, init, fit: Sequence[str] = 
             the contact impedance), wide enough not to bias a fit and tight enough that a trial
             step of the optimiser cannot make the FEM matrix numerically singular.
         solver: an optimistix least-squares solver. Default `LineSearchGaussNewton(rtol=1e-6,
-            atol=1e-6)`, the measured best (`benchmarks/fit.py`: 14 forward solves where
-            `optx.LevenbergMarquardt` took 174 on a held-out sphere, to the same estimates); pass
+            atol=1e-6)`, the measured best (experiments/results/fit_solvers.md); pass
             `optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6)` when the data may not see a fitted
             tissue (a rank-deficient Jacobian). In the sigmoid-log parameters 1e-6 is a relative
             change of ~3e-6 in sigma, far below any standard error at realistic noise.
