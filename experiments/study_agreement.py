@@ -38,7 +38,16 @@ jax.config.update("jax_enable_x64", True)
 import equinox as eqx  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxhead.fem import build_forward_model, simulate  # noqa: E402
+from jaxhead.electrodes import place_electrodes
+from jaxhead.fem import build_forward_model, simulate
+from jaxhead.geometry import (
+    MeshConfig,
+    SurfaceConfig,
+    extract_surfaces,
+    make_layers,
+    tetrahedralize,
+)
+from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.protocol import adjacent  # noqa: E402
 from jaxhead.study import (  # noqa: E402
     build_morph,
@@ -63,19 +72,31 @@ def main():
     ap.add_argument("--amplitudes", type=float, nargs="+", default=[0.5, 0.25, 0.1])
     ap.add_argument("--correlation-mm", type=float, default=20.0)
     ap.add_argument("--stiffening", type=float, default=1.0)
+    ap.add_argument("--edge-scale", type=float, default=1.0,
+                    help="scale the default surface and tet edge lengths (refinement study)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
-    out = Path(args.out or f"runs/study_agreement_{args.voxel_mm:g}mm")
+    tag = f"{args.voxel_mm:g}mm" + (f"_edge{args.edge_scale:g}" if args.edge_scale != 1 else "")
+    out = Path(args.out or f"runs/study_agreement_{tag}")
     cfg = study_config_from_dict({
         "name": "agreement", "out_dir": str(out),
         "reference": {"source": "phantom", "voxel_mm": args.voxel_mm, "n_elec": 16,
                       "sigma_s_m": {"brain": 0.3, "csf": 1.79, "skull": 0.018, "scalp": 0.44}},
         "perturbations": [{"kind": "grf", "tissue": args.tissue, "amplitude": 0.5}]})
     t0 = time.perf_counter()
-    ref_path = prepare_reference(json.loads(json.dumps(cfg.to_dict(), default=list)),
-                                 str(out / "study" / "reference"))
-    _, mesh, el = load_reference(ref_path)
     rc: ReferenceConfig = cfg.reference
+    if args.edge_scale == 1:  # the study's own reference head
+        ref_path = prepare_reference(json.loads(json.dumps(cfg.to_dict(), default=list)),
+                                     str(out / "study" / "reference"))
+        _, mesh, el = load_reference(ref_path)
+    else:  # the same head with every surface's and tissue's target edge scaled
+        _, labels = make_head(rc.modality, voxel_mm=rc.voxel_mm, seed=rc.seed)
+        mc = MeshConfig(edge_mm={k: v * args.edge_scale for k, v in MeshConfig().edge_mm.items()})
+        sc = SurfaceConfig(edge_mm={k: v * args.edge_scale
+                                    for k, v in SurfaceConfig().edge_mm.items()})
+        mesh = tetrahedralize(extract_surfaces(make_layers(labels), sc), mc)
+        el = place_electrodes(mesh, rc.n_elec, radius_mm=rc.electrode_radius_mm,
+                              contact_impedance=rc.contact_impedance_ohm_m2)
     sigma, prot = rc.sigma(), adjacent(rc.n_elec, current_a=rc.current_a)
     model = build_forward_model(mesh, el)
     morph = build_morph(mesh, stiffening=args.stiffening)
@@ -128,13 +149,14 @@ def main():
                                                       if r["sd_mm"] == a)}
     res = {"measure": "per sample ||dV - S d|| / ||dV|| (dV sampled, S d first order), both +d "
                       "and -d counted as samples",
-           "head": f"phantom seed 0, {args.voxel_mm:g} mm voxels, {mesh.n_tets} tets",
+           "head": f"phantom seed 0, {args.voxel_mm:g} mm voxels, {mesh.n_tets} tets "
+                   f"(default tet edges x {args.edge_scale:g})",
            "interface": args.tissue, "correlation_mm": args.correlation_mm,
            "stiffening": args.stiffening, "assembly_offset": offset,
            "max_chain_error": max(r["chain_error"] for r in rows),
            "sensitivity_seconds": t_s, "by_sd_mm": summary, "samples": rows}
     RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"study_agreement_{args.tissue}_{args.voxel_mm:g}mm.json"
+    path = RESULTS / f"study_agreement_{args.tissue}_{tag}.json"
     path.write_text(json.dumps(res, indent=1))
     print(json.dumps({k: v for k, v in res.items() if k != "samples"}, indent=1))
 

@@ -100,11 +100,14 @@ def test_outputs(study):
 def test_rerun_runs_only_missing_samples(study):
     cfg, out = study
     before = read(out)
-    victim = sorted((out / "samples").glob("*.json"))[0]
+    victim, *others = sorted((out / "samples").glob("*.json"))
     victim.unlink()
+    kept = {f.name: f.stat().st_mtime_ns for f in others}
     run_study(cfg, workers=1, progress=False)
     s = json.loads((out / "summary.json").read_text())
     assert s["run"]["ran"] == 1 and s["run"]["skipped_finished"] == 3
+    assert victim.is_file()
+    assert {f.name: f.stat().st_mtime_ns for f in others} == kept  # not recomputed
     after = read(out)
     for a, b in zip(before, after):  # seeded: the rerun sample is the same sample
         assert a["rel_voltage_change"] == pytest.approx(b["rel_voltage_change"]) or a["error"]

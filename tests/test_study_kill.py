@@ -9,8 +9,8 @@ import subprocess
 import sys
 import time
 
+import pytest
 from sphere_mesh import structured_sphere_mesh
-
 from test_study_engine import TOML as ENGINE_TOML
 
 from jaxhead.io import save_mesh
@@ -28,6 +28,7 @@ samples = 6
 """
 
 
+@pytest.mark.slow  # ~70 s: two cold starts (test_study_engine's rerun test is the fast check)
 def test_kill_9_mid_study_then_rerun_runs_only_the_missing_samples(tmp_path):
     mesh = structured_sphere_mesh(h_mm=16.0)
     save_mesh(mesh, tmp_path / "sphere.vtu")
