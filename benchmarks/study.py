@@ -85,6 +85,8 @@ def main():
                   f"({n} x 3600 / mean task {task.mean():.1f} s); {failed} failed; steps "
                   + ", ".join(f"{k} {v:.1f} s" for k, v in steps.items())
                   + f"; load {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}", flush=True)
+            print("         per sample (s, set-up excluded): "
+                  + " ".join(f"{t:.1f}" for t in task), flush=True)
         have = [n for n in (1, 2) if (route, n) in results]
         if len(have) == 2:
             (r1, s1), (r2, s2) = results[(route, 1)], results[(route, 2)]
