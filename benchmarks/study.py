@@ -5,7 +5,8 @@ once into `--out` (the reference folder is reused by every run). Each measuremen
 fresh study of `--samples` samples of one route through `run_study` with an embedded
 LocalCluster of 1 or 2 single-threaded worker processes; samples per hour = samples / wall time
 of `run_study` (worker start-up and each worker's reference set-up included, reference mesh
-excluded: it is built once per study, not per sample). Morph samples: grf on the CSF's outer
+excluded: it is built once per study, not per sample), and the steady rate, workers x 3600 /
+the mean task time without the worker's one-off set-up (what a long study approaches). Morph samples: grf on the CSF's outer
 surface, sd 0.5 mm, correlation 20 mm. Re-mesh samples: a random 8 mm skull hole. Measures: all
 (voltages, imaging, fit), as a study runs them. The scaling 2 workers / 1 worker is printed.
 
@@ -24,6 +25,7 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import jax  # noqa: E402
+import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -66,17 +68,30 @@ def main():
             t0 = time.perf_counter()
             path = run_study(cfg, workers=n, progress=False)
             wall = time.perf_counter() - t0
-            s = json.loads((path / "summary.json").read_text())
-            failed = sum(g["n_failed"] for g in s["groups"])
-            per_sample = [g["measures"].get("seconds", {}).get("mean") for g in s["groups"]]
+            rows = [json.loads(f.read_text()) for f in sorted((path / "samples").glob("*.json"))]
+            failed = sum(bool(r["error"]) for r in rows)
+            setup = [r["timings"].get("worker_setup", 0.0) for r in rows]
+            task = np.array([r["seconds"] - s for r, s in zip(rows, setup)])
+            steps = {k: np.mean([r["timings"][k] for r in rows if k in r["timings"]])
+                     for k in ("perturb", "mesh", "forward", "measures")
+                     if any(k in r["timings"] for r in rows)}
             rate = args.samples / wall * 3600
-            results[(route, n)] = rate
-            print(f"{route:7s} workers={n}: {args.samples} samples in {wall:7.1f} s "
-                  f"-> {rate:7.1f} samples/h ({failed} failed; mean task {per_sample[0]:.1f} s)",
-                  flush=True)
-        if all((route, n) in results for n in (1, 2)):
-            print(f"{route:7s} scaling 2 workers / 1 worker: "
-                  f"{results[(route, 2)] / results[(route, 1)]:.2f}x", flush=True)
+            steady = n * 3600 / task.mean()
+            results[(route, n)] = (rate, steady)
+            load = os.getloadavg()
+            print(f"{route:7s} workers={n}: {args.samples} samples in {wall:7.1f} s -> {rate:6.1f} "
+                  f"samples/h end to end (cluster start, each worker's set-up "
+                  f"{max(setup):.0f} s, included); {steady:6.1f} samples/h steady "
+                  f"({n} x 3600 / mean task {task.mean():.1f} s); {failed} failed; steps "
+                  + ", ".join(f"{k} {v:.1f} s" for k, v in steps.items())
+                  + f"; load {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}", flush=True)
+            print("         per sample (s, set-up excluded): "
+                  + " ".join(f"{t:.1f}" for t in task), flush=True)
+        have = [n for n in (1, 2) if (route, n) in results]
+        if len(have) == 2:
+            (r1, s1), (r2, s2) = results[(route, 1)], results[(route, 2)]
+            print(f"{route:7s} scaling 2 workers / 1 worker: {r2 / r1:.2f}x end to end, "
+                  f"{s2 / s1:.2f}x steady", flush=True)
 
 
 if __name__ == "__main__":

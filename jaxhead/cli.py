@@ -11,7 +11,7 @@ from pathlib import Path
 from . import io
 from .phantom import make_head
 from .run import load_config, run_pipeline, write_report
-from .study import run_study
+from .study import load_study_config, run_study
 
 
 def _setup_runtime() -> None:
@@ -46,7 +46,10 @@ def _cmd_report(args) -> int:
 
 
 def _cmd_study(args) -> int:
-    path = run_study(args.config, workers=args.workers, scheduler=args.scheduler,
+    cfg = load_study_config(args.config)
+    if args.out:
+        cfg = dataclasses.replace(cfg, out_dir=args.out)
+    path = run_study(cfg, workers=args.workers, scheduler=args.scheduler,
                      progress=False if args.no_progress else None)
     print(f"study folder: {path}")
     return 0
@@ -102,6 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="processes of the embedded Dask cluster (default: cores)")
     st.add_argument("--scheduler", default=None,
                     help="address of a running Dask scheduler (e.g. tcp://host:8786) instead")
+    st.add_argument("--out", help="study folder parent (overrides the config's out_dir)")
     st.add_argument("--no-progress", action="store_true", help="no progress bar")
     st.set_defaults(fn=_cmd_study)
 

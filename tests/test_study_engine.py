@@ -87,6 +87,10 @@ def test_outputs(study):
     s = json.loads((out / "summary.json").read_text())
     g = [g for g in s["groups"] if g["tissue"] == "csf"][0]
     assert g["first_order"]["agree_within_10_percent"] is True
+    a = s["agreement"]  # the bar's statement: measure, threshold, the sd <= 0.5 mm groups
+    assert a["bar"] == 0.10 and "||dV - S d|| / ||dV||" in a["measure"] and a["met"] is True
+    assert [(x["tissue"], x["sd_mm"], x["n"]) for x in a["groups"]] == [("csf", 0.3, 2)]
+    assert a["max"] == pytest.approx(g["first_order"]["per_sample_linearisation_error_max"])
     assert g["n"] == 2 and g["n_failed"] == 0
     assert (out / "first_order" / "sensitivity_csf.vtu").is_file()
     assert (out / "first_order" / "sensitivity_csf.png").is_file()
@@ -96,11 +100,14 @@ def test_outputs(study):
 def test_rerun_runs_only_missing_samples(study):
     cfg, out = study
     before = read(out)
-    victim = sorted((out / "samples").glob("*.json"))[0]
+    victim, *others = sorted((out / "samples").glob("*.json"))
     victim.unlink()
+    kept = {f.name: f.stat().st_mtime_ns for f in others}
     run_study(cfg, workers=1, progress=False)
     s = json.loads((out / "summary.json").read_text())
     assert s["run"]["ran"] == 1 and s["run"]["skipped_finished"] == 3
+    assert victim.is_file()
+    assert {f.name: f.stat().st_mtime_ns for f in others} == kept  # not recomputed
     after = read(out)
     for a, b in zip(before, after):  # seeded: the rerun sample is the same sample
         assert a["rel_voltage_change"] == pytest.approx(b["rel_voltage_change"]) or a["error"]
@@ -140,6 +147,8 @@ def test_unknown_keys_and_remesh_without_labels(tmp_path):
 def test_unreachable_scheduler_fails_before_any_work(tmp_path):
     d = base()
     d["out_dir"] = str(tmp_path / "run")
+    save_mesh(structured_sphere_mesh(h_mm=32.0), tmp_path / "x.vtu")
+    d["reference"]["mesh_path"] = str(tmp_path / "x.vtu")
     cfg = study_config_from_dict(d)
     with pytest.raises(ValueError, match="cannot reach the Dask scheduler"):
         run_study(cfg, scheduler="tcp://127.0.0.1:9", progress=False)
@@ -166,3 +175,38 @@ def test_shipped_configs_load():
     assert quick.reference.voxel_mm == 4.0
     full = load_study_config(root / "segmentation_sensitivity.toml")
     assert {p.realised_by for p in full.perturbations} == {"morph", "remesh", "electrodes"}
+
+
+@pytest.mark.parametrize("pert, argv, match", [
+    ({"kind": "grf", "tissue": "csf", "amplitude": -1.0}, [], "amplitude = -1.0"),
+    ({"kind": "dilate", "tissue": "bone", "amplitude": 1}, [], "unknown tissue 'bone'"),
+    ({"kind": "skull_hol", "amplitude": 8.0}, [], "unknown kind 'skull_hol'.*did you mean"),
+    ({"kind": "grf", "tissue": "csf", "amplitude": 0.5}, ["--scheduler", "tcp://127.0.0.1:9"],
+     "cannot reach the Dask scheduler at 'tcp://127.0.0.1:9'"),
+])
+def test_cli_bad_input_is_one_line_before_any_work(tmp_path, capsys, pert, argv, match):
+    """`jaxhead study`: exit 2, one line naming the value, and no study folder written."""
+    import re
+
+    from jaxhead.cli import main
+
+    mesh = structured_sphere_mesh(h_mm=32.0)
+    save_mesh(mesh, tmp_path / "m.vtu")
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(f'[study]\nout_dir = "{tmp_path / "run"}"\n[study.reference]\nsource = "mesh"\n'
+                   f'mesh_path = "{tmp_path / "m.vtu"}"\n[[study.perturbations]]\n'
+                   + "".join(f"{k} = {json.dumps(v)}\n" for k, v in pert.items()))
+    assert main(["study", str(cfg), *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("jaxhead: error:"), err
+    assert re.search(match, err), err
+    assert not (tmp_path / "run").exists()
+
+
+def test_missing_reference_file_fails_before_any_work(tmp_path):
+    d = base()
+    d["out_dir"] = str(tmp_path / "run")
+    d["reference"]["mesh_path"] = str(tmp_path / "nope.vtu")
+    with pytest.raises(ValueError, match="mesh_path = .*nope.vtu' does not exist"):
+        run_study(study_config_from_dict(d), workers=1, progress=False)
+    assert not (tmp_path / "run").exists()

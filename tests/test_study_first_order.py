@@ -119,3 +119,19 @@ def test_fit_bias_of_a_scaled_skull_has_the_expected_sign(setup, reference):
                                         reference.cfg, nodes=x))
     assert m["sigma_bias_percent_skull"] < 0
     assert m["rel_voltage_change"] > 0
+
+
+def test_node_gradients_by_reciprocity_equal_reverse_mode_ad(setup):
+    """The reciprocity route (one solve per electrode pair) vs jax.jacrev of `simulate` in the
+    node positions (one adjoint solve per row), with a drive/measurement sign mix."""
+    from jaxhead.protocol import Protocol
+    from jaxhead.study import node_gradients
+
+    mesh, model, protocol, morph, S = setup
+    prot = Protocol(np.array([[0, 3, 1, 2], [3, 0, 5, 4], [2, 1, 0, 5], [5, 1, 3, 2]]),
+                    current_a=1e-3)
+    G = node_gradients(model, SIGMA, prot, chunk_rows=3)
+    f = eqx.filter_jit(lambda m, x: simulate(m, SIGMA, prot, nodes=x))
+    Jad = np.asarray(jax.jacrev(lambda x: f(model, x))(jnp.asarray(mesh.nodes)))
+    assert G.shape == Jad.shape == (4, mesh.n_nodes, 3)
+    np.testing.assert_allclose(G, Jad, rtol=0, atol=1e-8 * np.abs(Jad).max())

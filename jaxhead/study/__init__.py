@@ -10,6 +10,8 @@ from .config import study_config_from_dict as study_config_from_dict
 from .engine import COLUMNS as COLUMNS
 from .engine import connect as connect
 from .engine import expand_samples as expand_samples
+from .engine import load_reference as load_reference
+from .engine import prepare_reference as prepare_reference
 from .engine import run_study as run_study
 from .engine import summarise as summarise
 from .first_order import displacement_sensitivity as displacement_sensitivity

@@ -7,8 +7,9 @@ sensitivity to interface t's normal displacement at vertex v is
     S_t[r, v] = sum_j dV_r / dx_j . dx_j / dd_v,
 
 dx_j/dd_v = n_v on the vertex itself and E n_v (the harmonic extension) inside. dV/dx comes
-from reverse-mode AD of `simulate` (one adjoint solve per row), then the chain through the
-extension is one multi-right-hand-side solve with K_II on the host (E^T = -K_IB^T K_II^-1).
+by reciprocity (one solve per electrode pair of the protocol, then a reverse pass through the
+assembly per row, `node_gradients`), then the chain through the extension is one
+multi-right-hand-side solve with K_II on the host (E^T = -K_IB^T K_II^-1).
 
 First order (delta method): dV ~ S_t d with d ~ GP(0, C), so Cov(dV) = S_t C S_t^T; the fitted
 conductivities of the reference model, linearised at the truth, move by A dV with
@@ -24,28 +25,60 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..fem import ForwardModel, jacobian, simulate
+from ..fem import ForwardModel, assemble, jacobian, potentials
+from ..fem.solvers import matvec
 from ..tissue import Tissue
 from .morph import Morph, extension_transpose
 
 
 def node_gradients(model: ForwardModel, sigma, protocol, *, chunk_rows: int = 32) -> np.ndarray:
-    """dV/dx at the model's nodes by reverse-mode AD: (n_rows, n_nodes, 3) in V/mm.
+    """dV/dx at the model's nodes by reciprocity: (n_rows, n_nodes, 3) in V/mm.
+
+    With A(x) the grounded CEM matrix, z_p = A^{-1} e_p the field of unit current through
+    electrode pair p and row r = (drive d, measurement m, current I), V_r = I z_m^T A z_d, so
+
+        dV_r / dx = -I z_m^T (dA/dx) z_d
+
+    (the geometric counterpart of `jaxhead.fem.jacobian`'s conductivity sensitivity). One solve
+    per unique electrode pair of the protocol, then per row one reverse pass through the
+    assembly alone (no solve): the row's bilinear form's cotangent on the stored matrix values,
+    pulled back to the node positions.
 
     Arguments:
         model: the reference ForwardModel; sigma: (4,) or (n_tets,) S/m; protocol: its Protocol.
-        chunk_rows: rows whose vector-Jacobian products are vmapped together (memory).
+        chunk_rows: rows pulled back together (memory: chunk_rows x (nnz + 3 n_nodes)).
     """
-    x0 = jnp.asarray(model.nodes)
-    f = lambda m, x: simulate(m, sigma, protocol, nodes=x)  # noqa: E731
-    _, vjp = eqx.filter_jit(lambda m, x: jax.vjp(lambda y: f(m, y), x))(model, x0)
-    n_rows = protocol.n_rows
-    pull = eqx.filter_jit(jax.vmap(lambda ct: vjp(ct)[0]))
-    out = np.empty((n_rows, model.n_nodes, 3))
-    eye = np.eye(n_rows)
-    for s in range(0, n_rows, chunk_rows):
-        out[s:s + chunk_rows] = np.asarray(pull(jnp.asarray(eye[s:s + chunk_rows])))
+    rows = np.asarray(protocol.rows, dtype=np.int64)
+    pairs = np.concatenate([rows[:, :2], rows[:, 2:]])
+    lo, hi = pairs.min(1), pairs.max(1)
+    sign = np.where(pairs[:, 0] == lo, 1.0, -1.0)
+    uniq, index = np.unique(np.stack([lo, hi], 1), axis=0, return_inverse=True)
+    index = index.ravel()
+    u, U = potentials(model, sigma, uniq, current_a=1.0)  # unit current into lo, out of hi
+    u, U = np.asarray(u), np.asarray(U)
+    # grounded unknowns (the last electrode is the solve's ground: its voltage is 0)
+    z = np.concatenate([u - U[:, -1:], U[:, :-1] - U[:, -1:]], axis=1)
+    n = rows.shape[0]
+    d_idx, m_idx = index[:n], index[n:]
+    scale = -float(protocol.current_a) * sign[:n] * sign[n:]
+    sig = jnp.asarray(sigma, dtype=jnp.float64)
+    zj = jnp.asarray(z)
+    out = np.empty((n, model.n_nodes, 3))
+    for s in range(0, n, chunk_rows):
+        sl = slice(s, s + chunk_rows)
+        out[sl] = np.asarray(_pull_rows(model, sig, zj, jnp.asarray(d_idx[sl]),
+                                        jnp.asarray(m_idx[sl]), jnp.asarray(scale[sl])))
     return out
+
+
+@eqx.filter_jit
+def _pull_rows(model, sigma, z, d, m, c):
+    """c_r * d(z_{m_r}^T A(x) z_{d_r})/dx at the model's nodes, (len(d), n_nodes, 3)."""
+    values0, pull = jax.vjp(lambda x: assemble(model, sigma, nodes=x), model.nodes)
+    # cotangent of the bilinear form on the stored values (linear in the values: exact)
+    ct = jax.vmap(lambda a, b: jax.grad(lambda v: b @ matvec(model.pattern, v, a))(values0))(
+        z[d], z[m])
+    return jax.vmap(lambda t: pull(t)[0])(ct * c[:, None])
 
 
 def displacement_sensitivity(model: ForwardModel, morph: Morph, sigma, protocol, *,

@@ -170,6 +170,7 @@ class Morph(eqx.Module):
     free: np.ndarray
     stiffening: float = eqx.field(static=True)
     extension: _Extension = eqx.field(static=True)
+    ref_quality: tuple = eqx.field(static=True, default=())
 
     def interface(self, tissue) -> Interface:
         t = Tissue.parse(tissue)
@@ -199,7 +200,15 @@ def build_morph(mesh: TetMesh, *, stiffening: float = 1.0) -> Morph:
     free = np.setdiff1d(np.arange(mesh.n_nodes), fixed)
     K = laplacian(mesh.nodes, mesh.tets, stiffening=stiffening)
     return Morph(mesh.nodes.copy(), mesh.tets.copy(), surf, fixed, free, float(stiffening),
-                 _Extension(K, fixed, free))
+                 _Extension(K, fixed, free), _quality_counts(mesh.nodes, mesh.tets))
+
+
+def _quality_counts(nodes, tets) -> tuple:
+    """(n_inverted, min scaled Jacobian, n below 0.2, n with condition > 3) of a tet mesh."""
+    m = {k: np.asarray(v) for k, v in tet_metrics(np.asarray(nodes, np.float64), tets).items()}
+    return (int((m["jacobian"] <= 0).sum()), float(m["scaled_jacobian"].min()),
+            int((m["scaled_jacobian"] < 0.2).sum()),
+            int(outside_range("condition", m["condition"]).sum()))
 
 
 def _callback(fn, x, n_out):
@@ -298,16 +307,12 @@ def morph_quality(morph: Morph, nodes, *, raise_on_inverted: bool = True) -> Mor
         raise_on_inverted: raise MorphError when any tet has Jacobian <= 0.
     """
     x = np.asarray(nodes, dtype=np.float64)
-    m = {k: np.asarray(v) for k, v in tet_metrics(x, morph.tets).items()}
-    r = {k: np.asarray(v) for k, v in tet_metrics(morph.nodes, morph.tets).items()}
-    bad_sj = lambda d: int((d["scaled_jacobian"] < 0.2).sum())  # noqa: E731
+    m = _quality_counts(x, morph.tets)
+    r = morph.ref_quality or _quality_counts(morph.nodes, morph.tets)  # cached by build_morph
     q = MorphQuality(
-        n_inverted=int((m["jacobian"] <= 0).sum()),
-        min_scaled_jacobian=float(m["scaled_jacobian"].min()),
-        ref_min_scaled_jacobian=float(r["scaled_jacobian"].min()),
-        n_below_sj_0_2=bad_sj(m), ref_n_below_sj_0_2=bad_sj(r),
-        n_condition_above_3=int(outside_range("condition", m["condition"]).sum()),
-        ref_n_condition_above_3=int(outside_range("condition", r["condition"]).sum()),
+        n_inverted=m[0], min_scaled_jacobian=m[1], ref_min_scaled_jacobian=r[1],
+        n_below_sj_0_2=m[2], ref_n_below_sj_0_2=r[2],
+        n_condition_above_3=m[3], ref_n_condition_above_3=r[3],
         max_displacement_mm=float(np.linalg.norm(x - morph.nodes, axis=1).max()))
     if raise_on_inverted and q.n_inverted:
         raise MorphError(

@@ -1,0 +1,115 @@
+"""Which interface's errors change the voltages most, and how large a displacement equals the
+measurement noise (issue 13, deliverable 7), to first order, on real-anatomy heads.
+
+For each head (the MNI152-based head, `mni152_anatomy`, and the ANTs 19.5-year head) at 4 mm
+voxels, 32 electrodes spread over the upper head, adjacent protocol, sigma = brain 0.3, CSF 1.79,
+skull 0.018, scalp 0.44 S/m: the sensitivity S_t of the voltages to the outward normal
+displacement of every interface t (brain = pial/CSF boundary, csf = inner skull, skull = outer
+skull, scalp = skin), through the morph (`displacement_sensitivity`), and for a smooth random
+displacement (GRF, sd 0.5 mm, correlation 20 mm) the first-order RMS voltage change in units of
+the 0.5 % noise (floored at 3 % of the RMS standing voltage), sqrt(mean_r Cov(dV)_rr / noise_r^2).
+To first order the change scales with the sd, so the sd whose change equals the noise is
+0.5 mm / that ratio. (First order: per sample the second-order remainder is ~14 % at sd 0.5 mm,
+`study_agreement.md`; ranking and noise-equivalent sizes are unaffected at that level.)
+
+Run: PYTHONPATH=. OPENBLAS_NUM_THREADS=1 .venv/bin/python experiments/interface_sensitivity.py
+     [--heads mni152 ants] [--ants-dir ../shared/data/heads]
+Writes experiments/results/interface_sensitivity.json and .md.
+"""
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+from jaxhead.electrodes import place_electrodes  # noqa: E402
+from jaxhead.fem import build_forward_model, simulate  # noqa: E402
+from jaxhead.geometry import extract_surfaces, make_layers, tetrahedralize  # noqa: E402
+from jaxhead.inverse import noise_std  # noqa: E402
+from jaxhead.protocol import adjacent  # noqa: E402
+from jaxhead.segmentation import ants_anatomy, mni152_anatomy  # noqa: E402
+from jaxhead.study import (  # noqa: E402
+    build_morph,
+    displacement_sensitivity,
+    first_order_summary,
+    fit_map,
+)
+
+RESULTS = Path(__file__).parent / "results"
+HEADS = {"mni152": lambda folder: mni152_anatomy(), "ants": ants_anatomy}
+SIGMA = np.array([0.3, 1.79, 0.018, 0.44])
+SD_MM, CORR_MM = 0.5, 20.0
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--voxel-mm", type=float, default=4.0)
+    ap.add_argument("--heads", nargs="+", default=list(HEADS), choices=list(HEADS))
+    ap.add_argument("--n-elec", type=int, default=32)
+    ap.add_argument("--ants-dir", default=str(Path(__file__).parents[1] / ".." / "shared" / "data"
+                                              / "heads"), help="folder of c1..c6ANTS19-5Years_head.jnii")
+    args = ap.parse_args()
+    res = {"voxel_mm": args.voxel_mm, "n_elec": args.n_elec, "protocol": "adjacent",
+           "sigma_s_m": SIGMA.tolist(), "prior": {"sd_mm": SD_MM, "correlation_mm": CORR_MM},
+           "noise_percent": 0.5, "heads": {}}
+    for name in args.heads:
+        t0 = time.perf_counter()
+        labels = HEADS[name](args.ants_dir).resampled(args.voxel_mm).labels()
+        mesh = tetrahedralize(extract_surfaces(make_layers(labels)))
+        el = place_electrodes(mesh, args.n_elec, radius_mm=5.0)
+        model = build_forward_model(mesh, el)
+        prot = adjacent(args.n_elec)
+        v = np.asarray(simulate(model, SIGMA, prot))
+        sd = noise_std(v, 0.5, floor=0.03)
+        morph = build_morph(mesh)
+        S = displacement_sensitivity(model, morph, SIGMA, prot)
+        A = fit_map(model, SIGMA, prot, sd)
+        head = {"n_tets": int(mesh.n_tets), "interfaces": {}}
+        for t, s in S.items():
+            surf = morph.interfaces[t]
+            fo = first_order_summary(s, surf.points(mesh.nodes), SD_MM, CORR_MM, v, sd, A=A,
+                                     sigma=SIGMA)
+            r = fo["rms_change_over_noise"]
+            head["interfaces"][t.name.lower()] = {
+                "n_vertices": int(surf.n_vertices), "area_cm2": float(surf.areas_mm2.sum() / 100),
+                "rms_change_over_noise": r, "sd_mm_equal_to_noise": SD_MM / r,
+                "rms_rel_voltage_change": fo["rms_rel_voltage_change"],
+                **{k: fo[k] for k in fo if k.startswith("sigma_sd_percent")}}
+        head["ranked"] = sorted(head["interfaces"],
+                                key=lambda k: -head["interfaces"][k]["rms_change_over_noise"])
+        head["seconds"] = time.perf_counter() - t0
+        res["heads"][name] = head
+        print(name, json.dumps(head), flush=True)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "interface_sensitivity.json").write_text(json.dumps(res, indent=1))
+    lines = ["# Which interface matters most (experiments/interface_sensitivity.py)", "",
+             f"First order; {args.voxel_mm:g} mm voxels, {args.n_elec} electrodes, adjacent; GRF "
+             f"sd {SD_MM} mm, correlation {CORR_MM} mm; 0.5 % noise floored at 3 % of the RMS "
+             "standing voltage.", "",
+             "| head | interface | RMS change / noise at sd 0.5 mm | sd equal to the noise (mm) | "
+             "RMS relative change | fitted-sigma sd % brain / csf / skull / scalp |",
+             "|---|---|---|---|---|---|"]
+    for name, h in res["heads"].items():
+        for t in h["ranked"]:
+            i = h["interfaces"][t]
+            lines.append(
+                f"| {name} ({h['n_tets']} tets) | {t} | {i['rms_change_over_noise']:.2f} | "
+                f"{i['sd_mm_equal_to_noise']:.3f} | {i['rms_rel_voltage_change']:.2e} | "
+                + " / ".join(f"{i['sigma_sd_percent_' + k]:.1f}" for k in
+                             ("brain", "csf", "skull", "scalp")) + " |")
+    (RESULTS / "interface_sensitivity.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
