@@ -403,8 +403,10 @@ def _insert_pass(nodes, tets, labels, q, target):
     tet containing the point through faces inside one tissue only, so no interface face, label
     or tissue volume changes; it is shrunk until every new tet (a cavity face and the point) is
     positive and the new tets fill exactly the cavity's volume (a star-shaped cavity). A point
-    outside its tissue (circumcentre beyond an interface) falls back to the tet's centroid. An
-    insertion is taken when it raises the cavity's worst quality; cavities do not overlap.
+    outside its tissue (circumcentre beyond an interface) falls back to points on the way to it
+    from the centroid (half, a quarter), the centroid, and a point towards the longest edge; the
+    first whose insertion raises the cavity's worst quality (and adds no tet below the limit) is
+    taken. Cavities do not overlap.
 
     Returns:
         (nodes, tets, labels, q) updated, and the number of nodes inserted.
@@ -424,7 +426,15 @@ def _insert_pass(nodes, tets, labels, q, target):
         if used[t]:
             continue
         best = None
-        for x in (cen[t], nodes[tets[t]].mean(axis=0)):
+        p = nodes[tets[t]]
+        g = p.mean(axis=0)
+        e = max(((a, b) for a in range(4) for b in range(a + 1, 4)),
+                key=lambda ab: np.linalg.norm(p[ab[0]] - p[ab[1]]))
+        mid = 0.5 * (p[e[0]] + p[e[1]])
+        # The circumcentre; points towards it from the centroid (when it lies beyond the tissue);
+        # the centroid; and a point towards the longest edge (for a cap whose circumcentre is far).
+        cand = [cen[t]] + [g + f * (cen[t] - g) for f in (0.5, 0.25)] + [g, g + 0.6 * (mid - g)]
+        for x in cand:
             if not np.all(np.isfinite(x)):
                 continue
             c0 = _locate(nodes, tets, labels, nbr, int(t), x)
