@@ -27,9 +27,12 @@ Roundtable), done on the host with vectorised candidate evaluation.
 
 What relocation cannot mend (a cap whose nodes all sit on surfaces, a high-valence node
 whose star is all poor) gets topological help between relocation cycles: 2-3 and 3-2 flips
-(:func:`_flip_pass`) and, when no flip helps, a midpoint split of each poor tet's longest edge
-(:func:`_split_pass`), all inside one tissue so that no interface face or label changes; the
-best state seen is kept, so the extra cycles never leave a worse mesh.
+(:func:`_flip_pass`), insertion of the poor tets' circumcentres with a local Delaunay cavity
+(:func:`_insert_pass`: the fan of needles a constrained-Delaunay mesher leaves between a coarse
+surface node and a finely refined surface across a thick shell) and, when neither helps, a
+midpoint split of each poor tet's longest edge (:func:`_split_pass`), all inside one tissue so
+that no interface face or label changes; the best state seen is kept, so the extra cycles never
+leave a worse mesh.
 
 Quality is Verdict's (``jaxhead.geometry.quality``): q = min(scaled Jacobian, 0.6 / condition number),
 which puts both of the seed paper's limits (scaled Jacobian 0.2, condition number 3) at q = 0.2.
@@ -354,6 +357,172 @@ def _split_pass(nodes, tets, labels, q, target):
     return nodes, tets, labels, q, len(chosen)
 
 
+def _circumspheres(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Circumcentres (m, 3) and squared circumradii (m,) of tets; inf for flat ones."""
+    p = nodes[tets]
+    a = p[:, 1:] - p[:, :1]  # (m, 3, 3)
+    rhs = 0.5 * np.einsum("mij,mij->mi", a, a)
+    det = np.linalg.det(a)
+    ok = np.abs(det) > 1e-12 * np.maximum(np.einsum("mij,mij->m", a, a), 1e-300) ** 1.5
+    c = np.full((len(tets), 3), np.inf)
+    if ok.any():
+        c[ok] = p[ok, 0] + np.linalg.solve(a[ok], rhs[ok][..., None])[..., 0]
+    r2 = np.where(ok, np.einsum("ij,ij->i", c - p[:, 0], c - p[:, 0]), np.inf)
+    return c, r2
+
+
+def _locate(nodes, tets, labels, nbr, start: int, x: np.ndarray, max_steps: int = 64) -> int:
+    """The tet of `start`'s tissue that contains x, by a visibility walk through faces inside that
+    tissue; -1 when the walk meets an interface, the boundary, or does not end."""
+    t = start
+    for _ in range(max_steps):
+        p = nodes[tets[t]]
+        # Signed volume of x with each face (face k opposite corner k, outward): x is beyond face k
+        # when the tet (face k reversed, x) is negative.
+        f = p[_TET_FACES]  # (4, 3, 3)
+        vol = np.einsum("ij,ij->i", np.cross(f[:, 2] - f[:, 0], f[:, 1] - f[:, 0]), x - f[:, 0])
+        k = int(np.argmin(vol))
+        if vol[k] >= 0:
+            return t
+        u = nbr[t, k]
+        if u < 0 or labels[u] != labels[t]:
+            return -1
+        t = int(u)
+    return -1
+
+
+def _insert_pass(nodes, tets, labels, q, target):
+    """Insert a node at the circumcentre of each tet below `target` (Delaunay refinement), inside
+    its own tissue, re-triangulating the cavity of tets whose circumspheres contain it.
+
+    Needles and caps around a high-valence node (a node on a coarse surface facing a finely
+    meshed one across a thick shell, with a fan of long edges a mesher left without interior
+    nodes) are mended neither by moving nodes nor by flips; inserting circumcentres is how
+    Delaunay refinement removes tets with a large circumradius-to-edge ratio (Shewchuk 1998,
+    "Tetrahedral mesh generation by Delaunay refinement", 14th SoCG). The cavity is grown from the
+    tet containing the point through faces inside one tissue only, so no interface face, label
+    or tissue volume changes; it is shrunk until every new tet (a cavity face and the point) is
+    positive and the new tets fill exactly the cavity's volume (a star-shaped cavity). A point
+    outside its tissue (circumcentre beyond an interface) falls back to points on the way to it
+    from the centroid (half, a quarter), the centroid, and a point towards the longest edge; the
+    first whose insertion raises the cavity's worst quality (and adds no tet below the limit) is
+    taken. Cavities do not overlap.
+
+    Returns:
+        (nodes, tets, labels, q) updated, and the number of nodes inserted.
+    """
+    m = len(tets)
+    faces, owner, fi, fj, _ = face_adjacency(tets)
+    nbr = np.full(4 * m, -1)
+    nbr[fi], nbr[fj] = owner[fj], owner[fi]
+    nbr = nbr.reshape(m, 4)
+    poor = np.nonzero(q < target)[0]
+    if not len(poor):
+        return nodes, tets, labels, q, 0
+    cen, r2 = _circumspheres(nodes, tets)
+    used = np.zeros(m, dtype=bool)
+    new_nodes, drop, add, add_label = [], [], [], []
+    for t in poor[np.argsort(q[poor])]:
+        if used[t]:
+            continue
+        best = None
+        p = nodes[tets[t]]
+        g = p.mean(axis=0)
+        e = max(((a, b) for a in range(4) for b in range(a + 1, 4)),
+                key=lambda ab: np.linalg.norm(p[ab[0]] - p[ab[1]]))
+        mid = 0.5 * (p[e[0]] + p[e[1]])
+        # The circumcentre; points towards it from the centroid (when it lies beyond the tissue);
+        # the centroid; and a point towards the longest edge (for a cap whose circumcentre is far).
+        cand = [cen[t]] + [g + f * (cen[t] - g) for f in (0.5, 0.25)] + [g, g + 0.6 * (mid - g)]
+        for x in cand:
+            if not np.all(np.isfinite(x)):
+                continue
+            c0 = _locate(nodes, tets, labels, nbr, int(t), x)
+            if c0 < 0 or used[c0]:
+                continue
+            cav = _cavity(nodes, tets, labels, nbr, cen, r2, used, c0, x)
+            if cav is None:
+                continue
+            cells, new = cav
+            q_new = tet_quality(np.concatenate([nodes, x[None]]), new)
+            if q_new.min() > q[cells].min() + 1e-9 and (q_new < LIMIT).sum() <= (q[cells] < LIMIT).sum():
+                best = (cells, new, x)
+                break
+        if best is None:
+            continue
+        cells, new, x = best
+        used[cells] = True
+        idx = len(nodes) + len(new_nodes)
+        new = np.where(new == len(nodes), idx, new)
+        new_nodes.append(x)
+        drop.append(cells)
+        add.append(new)
+        add_label.append(np.full(len(new), labels[cells[0]]))
+    if not new_nodes:
+        return nodes, tets, labels, q, 0
+    nodes = np.concatenate([nodes, np.array(new_nodes)])
+    keep = np.ones(m, dtype=bool)
+    keep[np.concatenate(drop)] = False
+    add = np.concatenate(add)
+    tets = np.concatenate([tets[keep], add])
+    labels = np.concatenate([labels[keep], np.concatenate(add_label)])
+    q = np.concatenate([q[keep], tet_quality(nodes, add)])
+    return nodes, tets, labels, q, len(new_nodes)
+
+
+def _cavity(nodes, tets, labels, nbr, cen, r2, used, c0: int, x: np.ndarray, max_cells: int = 256):
+    """Cells of `c0`'s tissue connected to it whose circumspheres contain x, shrunk to a cavity
+    star-shaped from x. Returns (cells, new tets with x as node index len(nodes)) or None."""
+    lab = labels[c0]
+    cells, front = {c0}, [c0]
+    while front and len(cells) < max_cells:
+        nxt = []
+        for c in front:
+            for u in nbr[c]:
+                u = int(u)
+                if u < 0 or u in cells or used[u] or labels[u] != lab:
+                    continue
+                d = cen[u] - x
+                if d @ d < r2[u] * (1 - 1e-9):
+                    cells.add(u)
+                    nxt.append(u)
+        front = nxt
+    xi = len(nodes)
+    allp = np.concatenate([nodes, x[None]])
+    for _ in range(64):
+        cl = np.fromiter(cells, dtype=np.int64)
+        f = tets[cl][:, _TET_FACES].reshape(-1, 3)  # outward faces of the cavity cells
+        fo = np.repeat(cl, 4)
+        nb = nbr[cl].reshape(-1)
+        outer = ~np.isin(nb, cl)
+        f, fo = f[outer], fo[outer]
+        new = np.concatenate([f[:, [0, 2, 1]], np.full((len(f), 1), xi)], axis=1)
+        vol = signed_volumes(allp, new)
+        scale = np.abs(signed_volumes(nodes, tets[cl])).max()
+        bad = vol <= 1e-9 * scale
+        if not bad.any():
+            if abs(vol.sum() - signed_volumes(nodes, tets[cl]).sum()) > 1e-9 * max(vol.sum(), 1e-300) * len(cl):
+                return None
+            return cl, new
+        drop = set(fo[bad].tolist())
+        if c0 in drop:
+            return None
+        cells -= drop
+        # keep the part still connected to c0
+        keep, front = {c0}, [c0]
+        while front:
+            nxt = []
+            for c in front:
+                for u in nbr[c]:
+                    u = int(u)
+                    if u in cells and u not in keep:
+                        keep.add(u)
+                        nxt.append(u)
+            front = nxt
+        cells = keep
+    return None
+
+
 def tet_quality_corners(p: np.ndarray) -> np.ndarray:
     """:func:`tet_quality` of tets given by their corners p (m, 4, 3)."""
     sj, cond = _sj_cond(p)
@@ -366,9 +535,11 @@ def improve_mesh(nodes: np.ndarray, tets: np.ndarray, labels: np.ndarray, projec
     """Improve the tets with quality below `target`, keeping interfaces on their surfaces.
 
     Node relocation (rounds over the poor tets' nodes) alternates with a pass of 2-3 / 3-2 flips
-    inside each tissue (:func:`_flip_pass`) for the tets relocation cannot mend (a sliver whose
-    nodes all sit on surfaces, or one locked by its neighbours); it stops when no tet is below
-    the target or a cycle changes nothing.
+    inside each tissue (:func:`_flip_pass`) and one of circumcentre insertions
+    (:func:`_insert_pass`) for the tets relocation cannot mend (a sliver whose nodes all sit on
+    surfaces, one locked by its neighbours, a fan of needles around one node), and edge splits
+    (:func:`_split_pass`) when neither changes anything; it stops when no tet is below the
+    target or a cycle changes nothing.
 
     Arguments:
         nodes: (n, 3) mm; tets: (m, 4) positively oriented; labels: (m,) tissue 1..4.
@@ -382,8 +553,9 @@ def improve_mesh(nodes: np.ndarray, tets: np.ndarray, labels: np.ndarray, projec
     Returns:
         (nodes (n, 3), tets (m', 4), labels (m',), stats dict: poor tets before/after, the
         input's Table-2 counts (scaled Jacobian < 0.2, condition > 3), nodes moved, flips,
-        seconds). The tets change only by flips within one tissue, so every
-        tissue's region and every interface are those of the input.
+        nodes inserted, edges split, seconds). The tets change only by flips, insertions and
+        splits within one tissue, so every tissue's region and every interface are those of the
+        input.
     """
     t0 = time.perf_counter()
     nodes = np.array(nodes, dtype=np.float64, copy=True)
@@ -397,7 +569,7 @@ def improve_mesh(nodes: np.ndarray, tets: np.ndarray, labels: np.ndarray, projec
     # The input's Table-2 counts (Vonach et al. 2012: scaled Jacobian 0.2-1, condition 1-3).
     table2_before = (int((sj < 0.2).sum()), int((cond > 3).sum()))
     min_before = float(q.min())
-    moved = rounds = n23 = n32 = n_split = 0
+    moved = rounds = n23 = n32 = n_split = n_insert = 0
     # Relocation raises each star's worst tet but may push others below 0.2, and splits can leave
     # a worse mesh than the cycle before: keep the best state by the Table-2 count, then the
     # worst quality, starting from the input; stop after _PATIENCE cycles without a better one.
@@ -433,7 +605,9 @@ def improve_mesh(nodes: np.ndarray, tets: np.ndarray, labels: np.ndarray, projec
             break
         tets, labels, q, f23, f32 = _flip_pass(nodes, tets, labels, q, target)
         n23, n32 = n23 + f23, n32 + f32
-        if f23 + f32 == 0:
+        nodes, tets, labels, q, ni = _insert_pass(nodes, tets, labels, q, target)
+        n_insert += ni
+        if f23 + f32 + ni == 0:
             nodes, tets, labels, q, ns = _split_pass(nodes, tets, labels, q, target)
             n_split += ns
             if ns == 0:
@@ -453,6 +627,7 @@ def improve_mesh(nodes: np.ndarray, tets: np.ndarray, labels: np.ndarray, projec
         "rounds": rounds,
         "flips_2_3": int(n23),
         "flips_3_2": int(n32),
+        "nodes_inserted": int(n_insert),
         "edges_split": int(n_split),
         "fixed_nodes": int((cls == -2).sum()),
         "seconds": round(time.perf_counter() - t0, 2),

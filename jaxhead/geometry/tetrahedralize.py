@@ -13,8 +13,9 @@ four-tissue tet mesh with one of three meshers (``MeshConfig.mesher``):
   surface's own edge length, graded away from it); tets are labelled by the surfaces that
   contain them.
 
-Then the worst tets are improved (``jaxhead.geometry.improve``: node relocation, flips and edge
-splits inside one tissue) with every interface node kept on its interface.
+Then the worst tets are improved (``jaxhead.geometry.improve``: node relocation, flips,
+circumcentre insertion and edge splits inside one tissue) with every interface node kept on its
+interface.
 """
 
 import importlib.util
@@ -122,10 +123,11 @@ class MeshConfig:
             while 10 with 80 passes ran more than 17 CPU minutes without finishing; the
             improvement step guards the quality either way.
         max_opt_iterations: fTetWild's maximum optimisation passes.
-        improve: volume-mesh improvement after fTetWild: "relocate" (smart smoothing of
+        improve: volume-mesh improvement after the mesher: "relocate" (smart smoothing of
             interior and interface nodes on the worst tets, interfaces kept on their surfaces,
-            alternating with 2-3 / 3-2 flips and edge splits inside one tissue for the tets
-            smoothing cannot mend; see ``jaxhead.geometry.improve``) or "none".
+            alternating with 2-3 / 3-2 flips, circumcentre insertion and edge splits inside one
+            tissue for the tets smoothing cannot mend; see ``jaxhead.geometry.improve``) or
+            "none".
         improve_iterations: at most this many rounds of relocation per cycle (each round moves
             the nodes of the tets still below the target; it stops earlier when none is left or
             no node moved). Rounds are cheap (only poor tets), so the cap is generous.
