@@ -7,7 +7,8 @@ Pipeline (one method for both modalities, as the seed's CT branch: Vonach et al.
 3. EM with atlas priors, prior relaxation, Potts MRF and (MRI) bias field on a strided sample of the
    grid (`em_sample_mm`, as SPM samples every 3 mm to estimate its mixture), em.py,
 4. posteriors on the full grid at the fitted parameters with mean-field MRF sweeps,
-5. hard labels = argmax of the five class posteriors (BACKGROUND, BRAIN, CSF, SKULL, SCALP).
+5. CT: the bone surface relabelled by the partial-volume majority rule (`bone_majority`),
+6. hard labels = argmax of the five class posteriors (BACKGROUND, BRAIN, CSF, SKULL, SCALP).
 
 MRI is modelled in log intensity (multiplicative bias -> additive; Van Leemput et al. 1999); CT in
 Hounsfield units with no bias field.
@@ -50,6 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from nibabel.orientations import aff2axcodes as nib_axcodes
+from scipy import ndimage
 
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, voxel_sizes
@@ -139,6 +141,8 @@ class SegmentConfig:
             2009a MNI152 brain in fsaverage's inner skull and scalp; see templates.py) or "phantom"
             (jaxhead's synthetic heads: tests, the synthetic demo).
         atlas_voxel_mm, atlas_subjects: voxel size of that atlas; phantom subjects it averages.
+        bone_majority: CT: relabel the bone surface by the partial-volume majority rule after the EM
+            (`bone_majority`; ignored for MRI).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
             outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
             MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
@@ -161,6 +165,7 @@ class SegmentConfig:
     atlas_voxel_mm: float = 2.0
     atlas_subjects: int = 8
     check_registration: bool = True
+    bone_majority: bool = True
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -189,6 +194,8 @@ class SegmentConfig:
         if self.precision not in ("float32", "float64"):
             raise ValueError(f"[segment] `precision` must be 'float32' or 'float64', got {self.precision!r}.")
         check_atlas_kind(self.atlas, "[segment] atlas")
+        if not isinstance(self.bone_majority, (bool, np.bool_)):
+            raise ValueError(f"[segment] `bone_majority` must be true or false, got {self.bone_majority!r}.")
         if not isinstance(self.check_registration, (bool, np.bool_)):
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
@@ -572,6 +579,9 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
         check_registration(summary, volume)
     t1 = time.perf_counter()
     post, res, opts, coords = classify(volume, priors, cfg)
+    if cfg.modality == "ct" and cfg.bone_majority:
+        post, info = bone_majority(np.asarray(volume.data), post)
+        log.info("segment (ct): bone majority rule %s", {k: round(v, 1) for k, v in info.items()})
     t2 = time.perf_counter()
     log.info("segment timings (s, compile included): registration %.1f, EM + MRF %.1f", t1 - t0, t2 - t1)
     labels = LabelMap(np.argmax(post, axis=0).astype(np.uint8), volume.affine)
@@ -604,6 +614,60 @@ def segment(volume: Volume, atlas: Atlas | None = None, cfg: SegmentConfig = Seg
     log.info("segmented with the %s atlas: %d EM iterations (converged: %s)", report.atlas_name,
              report.n_iter, report.converged)
     return labels
+
+
+def bone_majority(hu: np.ndarray, posteriors: np.ndarray) -> tuple[np.ndarray, dict]:
+    """CT: relabel the bone surface by the partial-volume majority rule (posteriors changed in place of a copy).
+
+    A voxel on the boundary of bone (intensity B) and soft tissue (S) holding a bone fraction f has
+    HU = f B + (1 - f) S, so bone fills most of it iff HU > (B + S) / 2. A Gaussian mixture cannot
+    draw that line: the skull class's broad Gaussians (diploe, partial-volume tail) own every voxel
+    from ~150 HU up, so the EM's skull is a voxel too thick at 2 mm; and a broad CSF or scalp
+    Gaussian can own bone voxels next to it. Bone is unambiguous in CT, so after the EM:
+
+    - B = median HU of the voxels the EM labels skull, S = median HU of those it labels brain (the
+      soft tissue on either side of the skull is 0-60 HU; brain is the largest and surest of it);
+      the threshold T = (B + S) / 2, both learnt from the scan (any scanner's calibration);
+    - every head voxel (not labelled background) above T is skull;
+    - skull voxels at or below T go to their most probable other class where they form a connected
+      piece (6-neighbourhood) that touches soft tissue (head voxels labelled neither skull nor
+      background): the partial-volume shell of the bone surface; pieces enclosed by bone above T
+      keep the skull label (diploe, fatty marrow of 300-800 HU in real skulls).
+
+    Arguments:
+        hu: (x, y, z) the CT in Hounsfield units.
+        posteriors: (5, x, y, z) class posteriors from the EM.
+    Returns:
+        (posteriors with the rule applied (one-hot where it decided), dict of B, S, T and voxel counts
+        moved), or the input and an empty dict when the EM labelled no skull or no brain.
+    """
+    lab = np.argmax(posteriors, axis=0)
+    sk, br = lab == int(Tissue.SKULL), lab == int(Tissue.BRAIN)
+    if not sk.any() or not br.any():
+        return posteriors, {}
+    b, s = float(np.median(hu[sk])), float(np.median(hu[br]))
+    if not b > s:  # no bright bone: not a CT the rule describes
+        return posteriors, {}
+    t = 0.5 * (b + s)
+    head = lab != int(Tissue.BACKGROUND)
+    bone = head & (hu > t)
+    skull = sk | bone
+    soft = head & ~skull
+    # skull voxels at or below T in a connected piece that touches soft tissue: partial volume at the
+    # bone surface (dropped); pieces enclosed by bone above T: diploe (kept)
+    low = skull & ~bone
+    pieces, n = ndimage.label(low)
+    touches = np.unique(pieces[ndimage.binary_dilation(soft) & low])
+    post = np.array(posteriors, copy=True)
+    others = post.sum(0) - post[int(Tissue.SKULL)]
+    drop = np.isin(pieces, touches[touches > 0]) & (others > 1e-6)  # (no other class possible: keep skull)
+    post[:, bone] = 0.0
+    post[int(Tissue.SKULL), bone] = 1.0
+    post[int(Tissue.SKULL), drop] = 0.0
+    z = post[:, drop].sum(0)
+    post[:, drop] /= np.maximum(z, np.finfo(post.dtype).tiny)
+    info = dict(bone_hu=b, soft_hu=s, threshold_hu=t, added=int((bone & ~sk).sum()), removed=int(drop.sum()))
+    return post, info
 
 
 def _coords(shape, padded, stride, dtype):
