@@ -680,6 +680,12 @@ def _layout_names(layout) -> tuple[str, ...]:
     return names
 
 
+def is_electrode_name(name) -> bool:
+    """Whether `name` is a 10-10 or extended 10-10 / 10-5 name `place_electrodes` can place
+    (any case; old names T3/T4/T5/T6 and I1/I2 included)."""
+    return isinstance(name, str) and _canon(name).lower() in {n.lower() for n in TEN_TEN + EXTENDED}
+
+
 def _canon(name: str) -> str:
     """A name's canonical 10-10 spelling key (old names and aliases mapped, any case)."""
     for old, new in _OLD_NAMES.items():

@@ -173,7 +173,20 @@ def test_bad_ucl_files(tmp_path, rec):
     s = json.loads(js.read_text())
     s["Freq"] = ["five", 50, 2000]
     js.write_text(json.dumps(s))
-    with pytest.raises(ValueError, match="Freq: not a numeric array"):
+    with pytest.raises(ValueError, match=r"Freq: not a numeric array: entry 1 is 'five', not a "
+                                         r"number; write the number"):
+        load_measurements(js)
+    s["Freq"] = FREQS
+    s["Protocol"][2][1] = "T7"  # a name where the layout has 1-based electrode numbers
+    js.write_text(json.dumps(s))
+    with pytest.raises(ValueError, match=r"rec.json: Protocol: not a numeric array: row 3, column "
+                                         r"2 is 'T7', not a number"):
+        load_measurements(js)
+    s = json.loads(write_ucl(tmp_path, prot, volts, pos, vkind="json").read_text())
+    s["Voltages"][4][1] = "1.5e-3 mV"  # text in the voltages: row and column named
+    js.write_text(json.dumps(s))
+    with pytest.raises(ValueError, match=r"Voltages: not a numeric array: row 5, column 2 is "
+                                         r"'1.5e-3 mV'"):
         load_measurements(js)
     # missing current
     js = write_ucl(tmp_path, prot, volts, pos)

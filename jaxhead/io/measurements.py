@@ -451,8 +451,24 @@ def _numeric(value, where) -> np.ndarray:
     try:
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"{where}: not a numeric array (text or ragged rows).") from None
+        raise ValueError(f"{where}: not a numeric array: {_first_non_number(value)}.") from None
     return a
+
+
+def _first_non_number(value) -> str:
+    """Where a nested list stops being a rectangular array of numbers (1-based row, column)."""
+    if not isinstance(value, (list, tuple)):
+        return f"{value!r} is not a number or a list of numbers; write numbers"
+    lengths = {len(v) for v in value if isinstance(v, (list, tuple))}
+    for i, row in enumerate(value, 1):
+        for j, x in enumerate(row if isinstance(row, (list, tuple)) else [row], 1):
+            if isinstance(x, bool) or not isinstance(x, (int, float)):
+                at = f"row {i}, column {j}" if isinstance(row, (list, tuple)) else f"entry {i}"
+                return f"{at} is {x!r}, not a number; write the number (or drop the row)"
+    if len(lengths) > 1:
+        return (f"rows of different lengths {sorted(lengths)}; every row needs the same number "
+                "of entries")
+    return "not numbers; write numbers only"
 
 
 def _orient(raw: np.ndarray, n_rows: int, n_freq: int, where: str) -> np.ndarray:

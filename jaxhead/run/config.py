@@ -8,6 +8,8 @@ closest valid key suggested.
 import collections.abc
 import dataclasses
 import difflib
+import json
+import math
 import tomllib
 import types
 import typing
@@ -21,11 +23,19 @@ from ..electrodes import ElectrodeConfig
 from ..geometry.layers import LayerConfig
 from ..geometry.surface import SurfaceConfig
 from ..geometry.tetrahedralize import MeshConfig
-from ..protocol import ProtocolConfig
+from ..io import MEASUREMENT_FORMATS, MESH_EXTENSIONS
+from ..io.measurements import LENGTH_UNITS
+from ..inverse.fit import CSF_PRIOR
+from ..protocol import ProtocolConfig, common_reference
 from ..segmentation import SegmentConfig
 from ..tissue import DEFAULT_SIGMA_S_M, TISSUE_NAMES
 
 Modality = Literal["mri", "ct"]
+
+#: `[inverse] fit_reject_sigma` for a recording when unset: channels beyond 5 robust standard
+#: deviations are rejected (experiments/measured_fit.py: every channel corrupted by 20 % was
+#: 27+ SD out, the clean ones below 5 once the fit had converged).
+MEASURED_REJECT_SIGMA = 5.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -33,7 +43,10 @@ class InputConfig:
     """Where the subject comes from.
 
     Arguments:
-        source: "phantom" builds synthetic heads (no files needed); "file" loads `path`.
+        source: "phantom" builds synthetic heads (no files needed); "file" loads `path`;
+            "mesh" starts from a tetrahedral head mesh made elsewhere (`mesh_path`): the
+            segment, layers and surfaces stages are then skipped (each writes skipped.txt
+            saying so) and the mesh stage takes the loaded mesh instead of meshing.
         modalities: with source="phantom", one subject per modality ("mri", "ct").
         modality: with source="file", the scan's modality.
         path: with source="file", a NIfTI/Analyze volume.
@@ -41,9 +54,20 @@ class InputConfig:
         voxel_mm: phantom voxel size, or the size to resample a loaded scan to (None keeps it).
         seed: phantom subject seed.
         noise: phantom noise level (MRI: fraction of white-matter intensity; CT: HU); None = default.
+        mesh_path: with source="mesh", a .msh (Gmsh/SimNIBS), .vtu or .mat (jaxhead, EIDORS)
+            mesh, read by `jaxhead.io.load_mesh`.
+        tissue_map: the file's tissue labels or names -> "brain" | "csf" | "skull" | "scalp"
+            (keys: labels as strings, e.g. {"1" = "brain", "2" = "brain", "3" = "csf", ...},
+            or the file's tissue names), or "simnibs" (`jaxhead.io.SIMNIBS_TISSUE_MAP`; a
+            SimNIBS head with eyes, blood and muscle needs all its tags in a table). Default:
+            the file's own tissue names, or jaxhead's labels 1..4.
+        mesh_units: length unit of an EIDORS mesh's vtx ("mm", "cm", "m"); default mm.
+        facing: a head facing away from +y (RAS) is an error ("check"), turned about z with
+            a report ("reorient"), or taken as it is ("ignore"); see `load_mesh`.
+        reorient_tets: fix negatively oriented tets (counted in the input stage's report).
     """
 
-    source: Literal["phantom", "file"] = "phantom"
+    source: Literal["phantom", "file", "mesh"] = "phantom"
     modalities: tuple[Modality, ...] = ("mri", "ct")
     modality: Modality = "mri"
     path: str | None = None
@@ -51,14 +75,61 @@ class InputConfig:
     voxel_mm: float | None = 2.0
     seed: int = 0
     noise: float | None = None
+    mesh_path: str | None = None
+    tissue_map: dict[str, str] | Literal["simnibs"] | None = None
+    mesh_units: Literal["mm", "cm", "m"] | None = None
+    facing: Literal["check", "reorient", "ignore"] = "check"
+    reorient_tets: bool = False
 
     def __post_init__(self):
+        if self.source not in ("phantom", "file", "mesh"):
+            raise ValueError(f'[input] `source` = {self.source!r}; use "phantom", "file" or "mesh".')
         if self.source == "file" and not self.path:
             raise ValueError('[input] source = "file" needs `path` = "scan.nii.gz".')
         if self.voxel_mm is not None and not self.voxel_mm > 0:
             raise ValueError(f"[input] `voxel_mm` must be > 0, got {self.voxel_mm}.")
         if self.source == "phantom" and not self.modalities:
             raise ValueError('[input] `modalities` is empty; use e.g. ["mri", "ct"].')
+        if self.source == "mesh" and not self.mesh_path:
+            raise ValueError('[input] source = "mesh" needs `mesh_path` = "head.msh" (.msh, .vtu '
+                             'or .mat).')
+        if self.mesh_path is not None:
+            if self.source != "mesh":
+                raise ValueError(f"[input] `mesh_path` = {self.mesh_path!r} is set but source = "
+                                 f"{self.source!r}; set source = \"mesh\" to start the run from "
+                                 "that mesh, or remove mesh_path.")
+            if not Path(self.mesh_path).is_file():
+                raise ValueError(f"[input] `mesh_path` = {self.mesh_path!r} is not a file "
+                                 f"(relative paths are relative to the current directory, "
+                                 f"{Path.cwd()}).")
+            if Path(self.mesh_path).suffix.lower() not in MESH_EXTENSIONS:
+                raise ValueError(f"[input] `mesh_path` = {self.mesh_path!r}: unsupported "
+                                 f"extension; use one of {list(MESH_EXTENSIONS)}.")
+        elif any(v is not None for v in (self.tissue_map, self.mesh_units)) \
+                or self.facing != "check" or self.reorient_tets:
+            raise ValueError("[input] `tissue_map`, `mesh_units`, `facing` and `reorient_tets` "
+                             "apply to a mesh file; set source = \"mesh\" and `mesh_path`.")
+        if isinstance(self.tissue_map, str) and self.tissue_map != "simnibs":
+            raise ValueError(f"[input] `tissue_map` = {self.tissue_map!r}; use \"simnibs\" or a "
+                             'table {"<label or name>" = "brain" | "csf" | "skull" | "scalp"}.')
+        if isinstance(self.tissue_map, dict):
+            for k, v in self.tissue_map.items():
+                if str(v).lower() not in TISSUE_NAMES:
+                    raise ValueError(f"[input] `tissue_map.{k}` = {v!r}; use one of "
+                                     f"{list(TISSUE_NAMES)}.")
+        if self.mesh_units is not None and self.mesh_units not in LENGTH_UNITS:
+            raise ValueError(f"[input] `mesh_units` = {self.mesh_units!r}; use one of "
+                             f"{sorted(LENGTH_UNITS)}.")
+        if self.facing not in ("check", "reorient", "ignore"):
+            raise ValueError(f'[input] `facing` = {self.facing!r}; use "check", "reorient" or '
+                             '"ignore".')
+
+    def mesh_tissue_map(self):
+        """`tissue_map` as `load_mesh` takes it: label keys ("3") as ints, names as given."""
+        if not isinstance(self.tissue_map, dict):
+            return self.tissue_map
+        return {int(k) if str(k).strip().lstrip("-").isdigit() else k: str(v).lower()
+                for k, v in self.tissue_map.items()}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -143,6 +214,54 @@ class InverseConfig:
             EIDORS prior_noser). 0.5, half NOSER: full NOSER (1) lifts deep cells on heads.
         fit_rtol, fit_atol: the fit's convergence tolerances (optimistix rtol/atol).
         fit_max_steps: the fit's step limit.
+        reconstruct: run the simulated-perturbation reconstruction (set false for a run that
+            only fits a recording).
+
+    A recording (`measured_path` read by `jaxhead.io.load_measurements`) brings its own
+    protocol (rows and current) and electrodes; these keys say how it is read and fitted:
+
+        measured_format: "csv" (our CSV or the plain layout), "ucl" (UCL JSON settings +
+            .mat/.json voltages in mV) or "voltages" (the old `load_voltages` reading: five
+            columns or one column of volts in the configured [protocol]'s order, fitted with
+            the [electrodes] and [protocol] of the config). Default: "ucl" for .json, "csv"
+            for a file whose rows name electrodes, else "voltages".
+        measured_voltages_path: UCL layout: the voltages file (default: the settings'
+            `Voltages` entry, else the .mat beside the JSON with its stem, which is then
+            named here so that the run's fingerprint covers it).
+        measured_variable: UCL layout: the .mat/.json variable holding the voltages.
+        measured_current_a: injected current in A, overriding the file's.
+        measured_electrodes: where the recording's electrodes go on the head: "names" (placed
+            by their 10-10 / 10-5 names, `[electrodes] landmarks_mm` as for layouts),
+            "positions" (the file's coordinates registered to the scalp,
+            `jaxhead.electrodes.register_positions`, residual in registration.txt), "config"
+            (the [electrodes] layout; the counts must agree), or "auto" (names when every
+            name is known, else positions when the file has them, else the config).
+        frequency_hz: the frequency to fit (Hz; it must be in the file), or "all" (a fit per
+            frequency: spectrum.csv and spectrum.png), or a list of frequencies. Default: the
+            file's only frequency (an error naming them when it has several).
+        fit_tissues: the tissues to fit; the others stay at `fit_init_s_m`.
+        fit_gain: fit an unknown current gain (a global scale). Default: true for a recording,
+            false for simulated data. With the gain, conductivities are determined only up to
+            a common scale: one tissue must be left out of `fit_tissues` or have a prior in
+            `fit_priors`; if neither, CSF's prior (1.79 S/m +- 2 %, Baumann et al. 1997) is
+            added and fit.txt says so.
+        fit_offsets: "per_injection" (a free voltage offset per injection: the reference
+            electrode's unknown potential) or "none". Default: "per_injection" for a recording
+            whose rows share one reference electrode, else "none".
+        fit_contact_impedance: "fixed" ([electrodes] contact_impedance_ohm_m2), "common" (one
+            fitted factor) or "per_electrode". Default for a recording: "per_electrode" when
+            every current-carrying electrode is also measured while it carries current (the
+            only rows that determine its impedance), else "common"; "fixed" for simulated data.
+        fit_contact_prior: with per-electrode contact impedances, a log-normal prior around
+            the [electrodes] value with this geometric standard deviation (> 1; 0: none).
+        fit_priors: {tissue or "gain" = [value, relative sd]} log-normal priors.
+        fit_loss: "linear", "huber" or "cauchy" (robust, on residuals in noise standard
+            deviations, scale `fit_loss_scale`). Default: "cauchy" for a recording, else
+            "linear".
+        fit_loss_scale: the robust loss's scale (noise standard deviations).
+        fit_reject_sigma: reject channels whose residual exceeds this many robust standard
+            deviations and refit (rejected.csv lists them). Default: 5 for a recording, off
+            for simulated data; 0 turns it off.
     """
 
     centre_mm: tuple[float, float, float] | None = None
@@ -164,8 +283,25 @@ class InverseConfig:
     fit_rtol: float = 1e-6
     fit_atol: float = 1e-6
     fit_max_steps: int = 50
+    reconstruct: bool = True
+    measured_format: Literal["csv", "ucl", "voltages"] | None = None
+    measured_voltages_path: str | None = None
+    measured_variable: str | None = None
+    measured_current_a: float | None = None
+    measured_electrodes: Literal["auto", "names", "positions", "config"] = "auto"
+    frequency_hz: float | Literal["all"] | tuple[float, ...] | None = None
+    fit_tissues: tuple[str, ...] = TISSUE_NAMES
+    fit_gain: bool | None = None
+    fit_offsets: Literal["none", "per_injection"] | None = None
+    fit_contact_impedance: Literal["fixed", "common", "per_electrode"] | None = None
+    fit_contact_prior: float = 2.0
+    fit_priors: dict[str, tuple[float, float]] = field(default_factory=dict)
+    fit_loss: Literal["linear", "huber", "cauchy"] | None = None
+    fit_loss_scale: float = 3.0
+    fit_reject_sigma: float | None = None
 
     def __post_init__(self):
+        self._check_measured()
         for name in ("radius_mm", "cell_mm"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"[inverse] `{name}` must be > 0, got {getattr(self, name)}.")
@@ -195,6 +331,188 @@ class InverseConfig:
                 or self.approx_error_draws < 2:
             raise ValueError("[inverse] `approx_error_draws` must be an integer >= 2, got "
                              f"{self.approx_error_draws!r}.")
+
+    def _check_measured(self):
+        """The recording keys: each wrong value names the key, the value and the fix."""
+        c = self
+        fmt_keys = ("measured_format", "measured_voltages_path", "measured_variable",
+                    "measured_current_a", "frequency_hz")
+        if c.measured_path is None:
+            given = [k for k in fmt_keys if getattr(c, k) is not None]
+            if c.measured_electrodes != "auto":
+                given.append("measured_electrodes")
+            if given:
+                raise ValueError(f"[inverse] {', '.join(f'`{k}`' for k in given)} describe a "
+                                 "recording, but `measured_path` is not set; set it or remove "
+                                 "them.")
+        elif Path(c.measured_path).is_file():
+            fmt = c.measured_format
+            if fmt is not None and fmt not in MEASUREMENT_FORMATS + ("voltages",):
+                raise ValueError(f"[inverse] `measured_format` = {fmt!r}; use \"csv\", \"ucl\" or "
+                                 "\"voltages\".")
+            if fmt is None:
+                object.__setattr__(self, "measured_format", measured_format_of(c.measured_path))
+            if self.measured_format == "ucl" and c.measured_voltages_path is None:
+                # name the implicit voltages file so that the resume fingerprint covers it
+                beside = ucl_voltages_beside(c.measured_path)
+                if beside is not None:
+                    object.__setattr__(self, "measured_voltages_path", beside)
+            if self.measured_format == "voltages":
+                extra = [k for k in fmt_keys[1:] if getattr(c, k) is not None]
+                if c.measured_electrodes != "auto":
+                    extra.append("measured_electrodes")
+                if extra:
+                    raise ValueError(
+                        f"[inverse] {', '.join(f'`{k}`' for k in extra)} need a recording "
+                        "layout, but `measured_format` is \"voltages\" (volts in the configured "
+                        "[protocol]'s order); use measured_format = \"csv\" or \"ucl\".")
+        if c.measured_voltages_path is not None and not Path(c.measured_voltages_path).is_file():
+            raise ValueError(f"[inverse] `measured_voltages_path` = {c.measured_voltages_path!r} "
+                             f"is not a file (relative paths are relative to {Path.cwd()}).")
+        if c.measured_current_a is not None and not (
+                isinstance(c.measured_current_a, (int, float)) and c.measured_current_a > 0):
+            raise ValueError(f"[inverse] `measured_current_a` must be > 0 A, got "
+                             f"{c.measured_current_a!r}.")
+        if c.measured_electrodes not in ("auto", "names", "positions", "config"):
+            raise ValueError(f"[inverse] `measured_electrodes` = {c.measured_electrodes!r}; use "
+                             "\"auto\", \"names\", \"positions\" or \"config\".")
+        f = c.frequency_hz
+        if isinstance(f, str):
+            if f != "all":
+                raise ValueError(f"[inverse] `frequency_hz` = {f!r}; give a frequency in Hz, a "
+                                 "list of them, or \"all\".")
+        elif f is not None:
+            vals = f if isinstance(f, (tuple, list)) else (f,)
+            if not vals or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                   and math.isfinite(x) and x > 0 for x in vals):
+                raise ValueError(f"[inverse] `frequency_hz` = {f!r}; frequencies must be > 0 Hz "
+                                 "(or \"all\").")
+        tissues = c.fit_tissues
+        if isinstance(tissues, str) or not tissues or any(
+                str(t).lower() not in TISSUE_NAMES for t in tissues) \
+                or len(set(map(str.lower, tissues))) != len(tissues):
+            raise ValueError(f"[inverse] `fit_tissues` = {tissues!r}; list distinct tissues from "
+                             f"{list(TISSUE_NAMES)}.")
+        if c.fit_gain is not None and not isinstance(c.fit_gain, bool):
+            raise ValueError(f"[inverse] `fit_gain` must be true or false, got {c.fit_gain!r}.")
+        if c.fit_offsets not in (None, "none", "per_injection"):
+            raise ValueError(f"[inverse] `fit_offsets` = {c.fit_offsets!r}; use \"none\" or "
+                             "\"per_injection\".")
+        if c.fit_contact_impedance not in (None, "fixed", "common", "per_electrode"):
+            raise ValueError(f"[inverse] `fit_contact_impedance` = {c.fit_contact_impedance!r}; "
+                             "use \"fixed\", \"common\" or \"per_electrode\".")
+        if not (c.fit_contact_prior == 0 or c.fit_contact_prior > 1):
+            raise ValueError(f"[inverse] `fit_contact_prior` = {c.fit_contact_prior!r} is the "
+                             "prior's geometric standard deviation: a factor > 1 (e.g. 2.0), or "
+                             "0 for none.")
+        for k, v in dict(c.fit_priors).items():
+            if k not in TISSUE_NAMES + ("gain",):
+                raise ValueError(f"[inverse] `fit_priors.{k}`: priors are for "
+                                 f"{list(TISSUE_NAMES) + ['gain']}.")
+            if len(v) != 2 or not (v[0] > 0 and v[1] > 0):
+                raise ValueError(f"[inverse] `fit_priors.{k}` = {list(v)!r}; give [value, "
+                                 "relative sd], both > 0, e.g. [1.79, 0.02].")
+            if k != "gain" and k not in [t.lower() for t in tissues]:
+                raise ValueError(f"[inverse] `fit_priors.{k}`: {k} is not in `fit_tissues` "
+                                 f"{list(tissues)}; fit it or drop the prior.")
+        if c.fit_loss not in (None, "linear", "huber", "cauchy"):
+            raise ValueError(f"[inverse] `fit_loss` = {c.fit_loss!r}; use \"linear\", \"huber\" "
+                             "or \"cauchy\".")
+        if not c.fit_loss_scale > 0:
+            raise ValueError(f"[inverse] `fit_loss_scale` must be > 0 (noise standard "
+                             f"deviations), got {c.fit_loss_scale}.")
+        if c.fit_reject_sigma is not None and not c.fit_reject_sigma >= 0:
+            raise ValueError(f"[inverse] `fit_reject_sigma` must be >= 0 (0: no rejection), "
+                             f"got {c.fit_reject_sigma}.")
+
+    def fit_keywords(self, protocol, *, recording: bool) -> tuple[dict, list[str]]:
+        """`fit_conductivities` keywords from these settings (unset keys: the defaults for a
+        recording, `recording=True`, or for simulated data; see above), and notes for fit.txt
+        saying what was chosen."""
+        rows = np.asarray(protocol.rows)
+        notes = []
+        gain = self.fit_gain if self.fit_gain is not None else recording
+        offsets = self.fit_offsets
+        if offsets is None:
+            offsets = ("per_injection" if recording and common_reference(protocol) is not None
+                       else "none")
+        z = self.fit_contact_impedance
+        carrying = np.unique(rows[:, :2])
+        unseen = [int(e) for e in carrying
+                  if not np.any(((rows[:, 0] == e) | (rows[:, 1] == e))
+                                & ((rows[:, 2] == e) | (rows[:, 3] == e)))]
+        if z is None:
+            z = "fixed" if not recording else ("common" if unseen else "per_electrode")
+        loss = self.fit_loss or ("cauchy" if recording else "linear")
+        reject = self.fit_reject_sigma
+        if reject is None:
+            reject = MEASURED_REJECT_SIGMA if recording else 0.0
+        tissues = tuple(t.lower() for t in self.fit_tissues)
+        priors = {k: tuple(v) for k, v in dict(self.fit_priors).items()}
+        if gain and len(tissues) == 4 and not any(t in priors for t in tissues):
+            priors["csf"] = CSF_PRIOR
+            notes.append(f"prior added: csf {CSF_PRIOR[0]} S/m +- {100 * CSF_PRIOR[1]:.0f} % "
+                         "(the gain leaves the conductivities' common scale to a prior; Baumann "
+                         "et al. 1997); set [inverse] fit_priors or fit_tissues to choose another")
+        contact_prior = (self.fit_contact_prior
+                         if z == "per_electrode" and self.fit_contact_prior > 0 else None)
+        notes.append(f"fit options: tissues {list(tissues)}, gain {gain}, offsets {offsets}, "
+                     f"contact impedance {z}"
+                     + (f" (prior: factor {contact_prior})" if contact_prior else "")
+                     + f", loss {loss}"
+                     + (f" (scale {self.fit_loss_scale})" if loss != "linear" else "")
+                     + (f", rejection at {reject} robust SD" if reject else ", no rejection"))
+        if z == "per_electrode":
+            never = sorted(set(range(int(rows.max()) + 1)) - set(carrying.tolist()))
+            if never:
+                notes.append(f"electrodes {[e + 1 for e in never]} (1-based) never carry current: "
+                             "their contact impedances are set by the prior (and weak shunting), "
+                             "not by the data; read their standard errors")
+            if unseen:
+                notes.append(f"electrodes {[e + 1 for e in unseen]} (1-based) carry current but "
+                             "are never measured while they do: their contact impedances are "
+                             "weakly determined")
+        kw = dict(fit=tissues, gain=bool(gain), offsets=None if offsets == "none" else offsets,
+                  contact_impedance=False if z == "fixed" else z, contact_prior=contact_prior,
+                  priors=priors or None, loss=loss, loss_scale=float(self.fit_loss_scale),
+                  reject_sigma=float(reject) if reject else None)
+        return kw, notes
+
+
+def measured_format_of(path) -> str:
+    """The `[inverse] measured_format` a file gets by default: "ucl" for .json, "csv" for a
+    table whose rows name four electrodes, else "voltages" (one column of volts)."""
+    path = Path(path)
+    if path.suffix.lower() == ".json":
+        return "ucl"
+    try:
+        with open(path, encoding="utf-8") as fh:
+            for line in fh:
+                s = line.strip()
+                if s and not s.startswith("#"):
+                    cells = [x for x in s.replace(",", " ").replace("\t", " ").split() if x]
+                    if len(cells) >= 5:
+                        return "csv"
+                    if len(cells) == 1 and cells[0].lower() not in ("volts", "voltage", "v"):
+                        return "voltages"
+    except (OSError, UnicodeDecodeError):
+        return "csv"  # load_measurements then names what is wrong with the file
+    return "voltages"
+
+
+def ucl_voltages_beside(path) -> str | None:
+    """The .mat beside a UCL settings JSON that `load_measurements` would read, when the JSON
+    has no `Voltages` entry (None otherwise, or when the JSON cannot be read: the inverse
+    stage then reports the file's problem)."""
+    path = Path(path)
+    try:
+        settings = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    beside = path.with_suffix(".mat")
+    if isinstance(settings, dict) and "Voltages" not in settings and beside.is_file():
+        return str(beside)
+    return None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -269,7 +587,7 @@ def _convert(value: Any, tp: Any, where: str) -> Any:
             return tuple(_convert(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
         if len(args) != len(value):
             raise ValueError(f"`{where}` needs {len(args)} entries, got {len(value)}.")
-        return tuple(_convert(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(args, value)))
+        return tuple(_convert(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
     if origin in (dict, collections.abc.Mapping) or tp in (dict,):
         if not isinstance(value, dict):
             raise ValueError(f"`{where}` must be a table, got {value!r}.")
