@@ -37,37 +37,30 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from jaxhead.electrodes import place_electrodes  # noqa: E402
 from jaxhead.fem import build_forward_model, simulate  # noqa: E402
-from jaxhead.geometry import TetMesh, extract_surfaces, make_layers, tetrahedralize  # noqa: E402
+from jaxhead.geometry import TetMesh  # noqa: E402
 from jaxhead.inverse import fit_conductivities, noise_std  # noqa: E402
 from jaxhead.protocol import adjacent, opposite  # noqa: E402
-from jaxhead.segmentation import ants_anatomy, mni152_anatomy  # noqa: E402
+from jaxhead.tissue import Tissue  # noqa: E402
+from _real_heads import add_head_arguments, head_model  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
-HEADS = {"mni152": lambda folder: mni152_anatomy(), "ants": ants_anatomy}
 SKULLS = (0.018, 0.01)
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--voxel-mm", type=float, default=4.0)
-    ap.add_argument("--heads", nargs="+", default=list(HEADS), choices=list(HEADS))
-    ap.add_argument("--n-elec", type=int, default=32)
-    ap.add_argument("--ants-dir", default=str(Path(__file__).parents[1] / ".." / "shared" / "data"
-                                              / "heads"), help="folder of c1..c6ANTS19-5Years_head.jnii")
+    add_head_arguments(ap)
     args = ap.parse_args()
     res = {"voxel_mm": args.voxel_mm, "n_elec": args.n_elec, "heads": {}}
     for name in args.heads:
         t0 = time.perf_counter()
-        labels = HEADS[name](args.ants_dir).resampled(args.voxel_mm).labels()
-        mesh = tetrahedralize(extract_surfaces(make_layers(labels)))
-        el = place_electrodes(mesh, args.n_elec, radius_mm=5.0)
-        true_model = build_forward_model(mesh, el)
-        lab = np.where(mesh.labels == 2, 1, mesh.labels)
+        mesh, el, true_model = head_model(name, args)
+        lab = np.where(mesh.labels == int(Tissue.CSF), int(Tissue.BRAIN), mesh.labels)
         no_csf = build_forward_model(TetMesh(mesh.nodes, mesh.tets, lab), el)
         vol = mesh.tet_volumes()
-        head = {"n_tets": int(mesh.n_tets), "csf_ml": float(vol[mesh.labels == 2].sum() / 1e3),
+        head = {"n_tets": int(mesh.n_tets),
+                "csf_ml": float(vol[mesh.labels == int(Tissue.CSF)].sum() / 1e3),
                 "mesh_seconds": time.perf_counter() - t0, "fits": []}
         for pname, prot in (("adjacent", adjacent(args.n_elec)), ("opposite", opposite(args.n_elec))):
             for skull in SKULLS:

@@ -32,12 +32,11 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from jaxhead.electrodes import place_electrodes  # noqa: E402
-from jaxhead.fem import build_forward_model, simulate  # noqa: E402
-from jaxhead.geometry import extract_surfaces, make_layers, tetrahedralize  # noqa: E402
+from jaxhead.fem import simulate  # noqa: E402
 from jaxhead.inverse import noise_std  # noqa: E402
 from jaxhead.protocol import adjacent  # noqa: E402
-from jaxhead.segmentation import ants_anatomy, mni152_anatomy  # noqa: E402
+from jaxhead.tissue import default_sigma  # noqa: E402
+from _real_heads import add_head_arguments, head_model  # noqa: E402
 from jaxhead.study import (  # noqa: E402
     build_morph,
     displacement_sensitivity,
@@ -46,28 +45,20 @@ from jaxhead.study import (  # noqa: E402
 )
 
 RESULTS = Path(__file__).parent / "results"
-HEADS = {"mni152": lambda folder: mni152_anatomy(), "ants": ants_anatomy}
-SIGMA = np.array([0.3, 1.79, 0.018, 0.44])
+SIGMA = default_sigma()  # brain 0.3, CSF 1.79, skull 0.018, scalp 0.44 S/m
 SD_MM, CORR_MM = 0.5, 20.0
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--voxel-mm", type=float, default=4.0)
-    ap.add_argument("--heads", nargs="+", default=list(HEADS), choices=list(HEADS))
-    ap.add_argument("--n-elec", type=int, default=32)
-    ap.add_argument("--ants-dir", default=str(Path(__file__).parents[1] / ".." / "shared" / "data"
-                                              / "heads"), help="folder of c1..c6ANTS19-5Years_head.jnii")
+    add_head_arguments(ap)
     args = ap.parse_args()
     res = {"voxel_mm": args.voxel_mm, "n_elec": args.n_elec, "protocol": "adjacent",
            "sigma_s_m": SIGMA.tolist(), "prior": {"sd_mm": SD_MM, "correlation_mm": CORR_MM},
            "noise_percent": 0.5, "heads": {}}
     for name in args.heads:
         t0 = time.perf_counter()
-        labels = HEADS[name](args.ants_dir).resampled(args.voxel_mm).labels()
-        mesh = tetrahedralize(extract_surfaces(make_layers(labels)))
-        el = place_electrodes(mesh, args.n_elec, radius_mm=5.0)
-        model = build_forward_model(mesh, el)
+        mesh, el, model = head_model(name, args)
         prot = adjacent(args.n_elec)
         v = np.asarray(simulate(model, SIGMA, prot))
         sd = noise_std(v, 0.5, floor=0.03)

@@ -22,10 +22,13 @@ def _setup_runtime() -> None:
     jax.config.update("jax_enable_x64", True)
 
 
+def _out_dir(cfg, args):
+    """The config with `--out` (when given) as its output folder."""
+    return dataclasses.replace(cfg, out_dir=args.out) if args.out else cfg
+
+
 def _cmd_run(args) -> int:
-    cfg = load_config(args.config)
-    if args.out:
-        cfg = dataclasses.replace(cfg, out_dir=args.out)
+    cfg = _out_dir(load_config(args.config), args)
     results = run_pipeline(cfg, force=args.force, wait=args.wait,
                            progress=lambda s: print(s, flush=True))
     print(f"run folder: {cfg.run_dir.resolve()}")
@@ -35,9 +38,7 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_report(args) -> int:
-    cfg = load_config(args.config)
-    if args.out:
-        cfg = dataclasses.replace(cfg, out_dir=args.out)
+    cfg = _out_dir(load_config(args.config), args)
     if not cfg.run_dir.is_dir():
         raise FileNotFoundError(f"run folder {str(cfg.run_dir)!r} does not exist; run "
                                 f"`jaxhead run {args.config}` first.")
@@ -46,9 +47,7 @@ def _cmd_report(args) -> int:
 
 
 def _cmd_study(args) -> int:
-    cfg = load_study_config(args.config)
-    if args.out:
-        cfg = dataclasses.replace(cfg, out_dir=args.out)
+    cfg = _out_dir(load_study_config(args.config), args)
     path = run_study(cfg, workers=args.workers, scheduler=args.scheduler,
                      progress=False if args.no_progress else None)
     print(f"study folder: {path}")
