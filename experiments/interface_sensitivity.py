@@ -52,7 +52,12 @@ SD_MM, CORR_MM = 0.5, 20.0
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_head_arguments(ap)
+    ap.add_argument("--table-only", action="store_true",
+                    help="rewrite the .md table from the existing .json (no computation)")
     args = ap.parse_args()
+    if args.table_only:
+        write_table(json.loads((RESULTS / "interface_sensitivity.json").read_text()))
+        return
     res = {"voxel_mm": args.voxel_mm, "n_elec": args.n_elec, "protocol": "adjacent",
            "sigma_s_m": SIGMA.tolist(), "prior": {"sd_mm": SD_MM, "correlation_mm": CORR_MM},
            "noise_percent": 0.5, "heads": {}}
@@ -83,21 +88,41 @@ def main():
         print(name, json.dumps(head), flush=True)
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "interface_sensitivity.json").write_text(json.dumps(res, indent=1))
+    write_table(res)
+
+
+def write_table(res: dict) -> None:
+    """interface_sensitivity.md from the results dict."""
     lines = ["# Which interface matters most (experiments/interface_sensitivity.py)", "",
-             f"First order; {args.voxel_mm:g} mm voxels, {args.n_elec} electrodes, adjacent; GRF "
+             f"First order; {res['voxel_mm']:g} mm voxels, {res['n_elec']} electrodes, adjacent; GRF "
              f"sd {SD_MM} mm, correlation {CORR_MM} mm; 0.5 % noise floored at 3 % of the RMS "
              "standing voltage.", "",
-             "| head | interface | RMS change / noise at sd 0.5 mm | sd equal to the noise (mm) | "
-             "RMS relative change | fitted-sigma sd % brain / csf / skull / scalp |",
-             "|---|---|---|---|---|---|"]
+             "Two readings of \"equal to the noise\": per row, noise 0.5 % of that row's voltage "
+             "(floored), so the small-voltage rows weigh most (column 4); and norm(dV) / norm(V) "
+             "over all rows equal to 0.5 % (column 6, = sd x 0.5 % / column 5).", "",
+             "| head | interface | RMS change / noise at sd 0.5 mm | sd equal to the noise, per "
+             "row (mm) | norm(dV) / norm(V) at sd 0.5 mm | sd giving norm(dV) / norm(V) = 0.5 % "
+             "(mm) | fitted-sigma sd % brain / csf / skull / scalp |",
+             "|---|---|---|---|---|---|---|"]
     for name, h in res["heads"].items():
         for t in h["ranked"]:
             i = h["interfaces"][t]
             lines.append(
                 f"| {name} ({h['n_tets']} tets) | {t} | {i['rms_change_over_noise']:.2f} | "
                 f"{i['sd_mm_equal_to_noise']:.3f} | {i['rms_rel_voltage_change']:.2e} | "
+                f"{SD_MM * 0.005 / i['rms_rel_voltage_change']:.2f} | "
                 + " / ".join(f"{i['sigma_sd_percent_' + k]:.1f}" for k in
                              ("brain", "csf", "skull", "scalp")) + " |")
+    lines += ["", "Findings (from the table above):"]
+    for name, h in res["heads"].items():
+        r = h["ranked"]
+        lines.append(f"- {name}: ranked by voltage change, " + " > ".join(r) + "; the most "
+                     f"sensitive ({r[0]}) equals the per-row noise at sd "
+                     f"{h['interfaces'][r[0]]['sd_mm_equal_to_noise']:.3f} mm, the least ({r[-1]}) "
+                     f"at {h['interfaces'][r[-1]]['sd_mm_equal_to_noise']:.2f} mm.")
+    lines.append("- The scalp interface carries the electrodes (their faces move with it), so its "
+                 "row includes the change of electrode shape and position that a scalp error "
+                 "implies.")
     (RESULTS / "interface_sensitivity.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
