@@ -187,6 +187,9 @@ def main():
                              "sampled_rms_rel_voltage_change": float(np.sqrt(np.mean(rel**2))),
                              "rms_ratio_sampled_over_first_order": float(
                                  np.sqrt(np.mean(rel**2)) / fo["rms_rel_voltage_change"]),
+                             "effective_dof": fo["effective_dof"],
+                             "rms_ratio_sampling_sd_fields": float(
+                                 np.sqrt(1 / (2 * rel1.size * fo["effective_dof"]))),
                              "rms_ratio_sampled_over_sampled_first_order": float(
                                  np.sqrt(np.mean(rel**2)) / np.sqrt(np.mean(rel1**2))),
                              "max_even_part": max(r["even_part"] for r in rows if r["sd_mm"] == a),

@@ -106,6 +106,7 @@ def test_outputs(study):
     rel = np.array([float(r["rel_voltage_change"]) for r in grf])
     assert dist[0]["sampled_rms"] == pytest.approx(np.sqrt(np.mean(rel**2)))
     assert dist[0]["ratio"] == pytest.approx(dist[0]["sampled_rms"] / dist[0]["first_order_rms"])
+    assert 0 < dist[0]["ratio_sampling_sd"] <= np.sqrt(1 / (2 * 2))  # n = 2, dof >= 1
     assert g["n"] == 2 and g["n_failed"] == 0
     assert (out / "first_order" / "sensitivity_csf.vtu").is_file()
     assert (out / "first_order" / "sensitivity_csf.png").is_file()

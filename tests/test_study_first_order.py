@@ -20,6 +20,7 @@ from jaxhead.study import (
     grf_covariance,
     measure,
     morph_nodes,
+    first_order_summary,
     sample_grf,
     second_order_prediction,
     taylor_terms,
@@ -63,6 +64,27 @@ def test_voltage_covariance_equals_dense_product(setup):
     dense = S[Tissue.CSF] @ C @ S[Tissue.CSF].T
     np.testing.assert_allclose(voltage_covariance(S[Tissue.CSF], p, 0.5, 15.0, block=7), dense,
                                rtol=1e-10, atol=1e-14 * np.abs(dense).max())
+
+
+def test_first_order_rms_and_dof_match_monte_carlo(setup):
+    """E||S d||^2 = trace(S C S^T) and Var ||S d||^2 = 2 trace((S C S^T)^2) over exact GRF draws
+    (4000 Cholesky samples: the tolerances are 5 standard errors of the estimates)."""
+    mesh, model, protocol, morph, S = setup
+    s = morph.interface("csf")
+    p = s.points(mesh.nodes)
+    v = np.asarray(simulate(model, SIGMA, protocol))
+    fo = first_order_summary(S[Tissue.CSF], p, 0.5, 15.0, v, np.ones_like(v))
+    n = 4000
+    q = np.sum((sample_grf(p, 0.5, 15.0, n_samples=n, seed=11, method="cholesky")
+                @ S[Tissue.CSF].T) ** 2, axis=1)  # ||S d||^2 per draw
+    ms = fo["rms_rel_voltage_change"] ** 2 * np.sum(v * v)  # predicted E||S d||^2
+    dof = fo["effective_dof"]
+    assert 1 <= dof <= len(v)
+    rel_se = np.sqrt(2 / (n * dof))  # relative standard error of the mean of q
+    assert q.mean() == pytest.approx(ms, rel=5 * rel_se)
+    # variance 2 ms^2 / dof; its estimate's relative SE is at most sqrt(14 / n) (dof = 1,
+    # chi^2_1: fourth central moment 60, variance 2, so (60 - 4) / (4 n))
+    assert q.var(ddof=1) == pytest.approx(2 * ms**2 / dof, rel=5 * np.sqrt(14 / n))
 
 
 def test_linearisation_error_is_second_order(setup):

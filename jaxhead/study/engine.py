@@ -79,7 +79,9 @@ SECOND_ORDER_MEASURE = ("per sample ||dV - (S d + 1/2 D2V[dx, dx])|| / ||dV||: t
                         "displacement, linear in d; D2V by forward-over-forward AD at x0)")
 DISTRIBUTION_MEASURE = ("what the first-order route predicts for a study: the RMS over samples of "
                         "rel_voltage_change, sqrt(trace S C S^T) / ||V||, against the sampled RMS "
-                        "of n samples (ratio sampled / first order)")
+                        "of n samples (ratio sampled / first order; ratio_sampling_sd = "
+                        "sqrt(1 / (2 n dof)), dof = trace(S C S^T)^2 / trace((S C S^T)^2), is the "
+                        "ratio's expected Monte Carlo scatter)")
 AGREEMENT_BAR = 0.10
 AGREEMENT_MAX_SD_MM = 0.5
 
@@ -588,7 +590,8 @@ def summarise(rows: list[dict], first_order: dict | None) -> dict:
                     **{k: cmp[k] for k in (
                         "second_order_max", "second_order_mean",
                         "sampled_rms_rel_voltage_change", "first_order_rms_rel_voltage_change",
-                        "rms_ratio_sampled_over_first_order", "second_order_seconds_per_sample")
+                        "rms_ratio_sampled_over_first_order", "rms_ratio_sampling_sd",
+                        "second_order_seconds_per_sample")
                        if k in cmp}})
         out["groups"].append(g)
     if agreement["groups"]:
@@ -613,7 +616,8 @@ def summarise(rows: list[dict], first_order: dict | None) -> dict:
                 "groups": [{"tissue": a["tissue"], "sd_mm": a["sd_mm"], "n": a["n"],
                             "sampled_rms": a["sampled_rms_rel_voltage_change"],
                             "first_order_rms": a["first_order_rms_rel_voltage_change"],
-                            "ratio": a["rms_ratio_sampled_over_first_order"]} for a in rms],
+                            "ratio": a["rms_ratio_sampled_over_first_order"],
+                            "ratio_sampling_sd": a.get("rms_ratio_sampling_sd")} for a in rms],
                 "max_abs_ratio_minus_1": max(abs(a["rms_ratio_sampled_over_first_order"] - 1)
                                              for a in rms)}
         out["agreement"] = agreement
@@ -639,6 +643,11 @@ def _first_order_comparison(ok: list[dict], first_order: dict, tissue: str, amp:
         if rel.size:
             cmp["rms_ratio_sampled_over_first_order"] = (cmp["sampled_rms_rel_voltage_change"]
                                                          / p["rms_rel_voltage_change"])
+            if np.isfinite(p.get("effective_dof", np.nan)):
+                # the ratio's Monte Carlo scatter for rel.size independent samples (first order)
+                cmp["first_order_effective_dof"] = p["effective_dof"]
+                cmp["rms_ratio_sampling_sd"] = float(np.sqrt(1 / (2 * rel.size
+                                                                  * p["effective_dof"])))
     if np.isfinite(lin).any():
         cmp["per_sample_n"] = int(np.isfinite(lin).sum())
         cmp["per_sample_linearisation_error_max"] = float(np.nanmax(lin))

@@ -162,12 +162,16 @@ def first_order_summary(S: np.ndarray, points, sd_mm: float, correlation_mm: flo
 
     Returns a dict: rms_rel_voltage_change (sqrt(trace Cov) / ||V||, the RMS of the sampled
     rel_voltage_change to first order), rms_change_over_noise (sqrt(mean diag(Cov) / noise^2)),
-    and, with A and sigma, sigma_sd_percent_<tissue> (first-order sd of the fitted
-    conductivities in % of the truth).
+    effective_dof (trace(Cov)^2 / trace(Cov^2): ||dV||^2 is a sum of weighted chi^2 variables
+    with variance 2 trace(Cov^2), so the RMS of n independent samples scatters around the
+    prediction by a relative sd of about sqrt(1 / (2 n effective_dof))), and, with A and sigma,
+    sigma_sd_percent_<tissue> (first-order sd of the fitted conductivities in % of the truth).
     """
     cov = voltage_covariance(S, points, sd_mm, correlation_mm)
     v = np.asarray(volts)
+    tr2 = float(np.sum(cov * cov))  # trace(Cov^2), Cov symmetric
     out = {"rms_rel_voltage_change": float(np.sqrt(np.trace(cov)) / np.linalg.norm(v)),
+           "effective_dof": float(np.trace(cov) ** 2 / tr2) if tr2 > 0 else float("nan"),
            "rms_change_over_noise": float(np.sqrt(np.mean(np.diag(cov) / np.asarray(noise_sd) ** 2)))}
     if A is not None:
         cs = A @ cov @ A.T
