@@ -588,7 +588,7 @@ def summarise(rows: list[dict], first_order: dict | None) -> dict:
                     "max": cmp["per_sample_linearisation_error_max"],
                     "mean": cmp["per_sample_linearisation_error_mean"],
                     **{k: cmp[k] for k in (
-                        "second_order_max", "second_order_mean",
+                        "second_order_max", "second_order_mean", "sampled_n",
                         "sampled_rms_rel_voltage_change", "first_order_rms_rel_voltage_change",
                         "rms_ratio_sampled_over_first_order", "rms_ratio_sampling_sd",
                         "second_order_seconds_per_sample")
@@ -613,7 +613,7 @@ def summarise(rows: list[dict], first_order: dict | None) -> dict:
         if rms:
             agreement["distribution"] = {
                 "measure": DISTRIBUTION_MEASURE,
-                "groups": [{"tissue": a["tissue"], "sd_mm": a["sd_mm"], "n": a["n"],
+                "groups": [{"tissue": a["tissue"], "sd_mm": a["sd_mm"], "n": a["sampled_n"],
                             "sampled_rms": a["sampled_rms_rel_voltage_change"],
                             "first_order_rms": a["first_order_rms_rel_voltage_change"],
                             "ratio": a["rms_ratio_sampled_over_first_order"],
