@@ -91,6 +91,22 @@ def test_outputs(study):
     assert a["bar"] == 0.10 and "||dV - S d|| / ||dV||" in a["measure"] and a["met"] is True
     assert [(x["tissue"], x["sd_mm"], x["n"]) for x in a["groups"]] == [("csf", 0.3, 2)]
     assert a["max"] == pytest.approx(g["first_order"]["per_sample_linearisation_error_max"])
+    # second order per sample, and the distribution the first-order route predicts
+    assert list(COLUMNS[-2:]) == ["first_order_rel_error", "second_order_rel_error"]
+    e1 = np.array([float(r["first_order_rel_error"]) for r in grf])
+    e2 = np.array([float(r["second_order_rel_error"]) for r in grf])
+    np.testing.assert_array_equal(e1, [float(r["linearisation_error"]) for r in grf])
+    print("engine first/second order errors", e1, e2)
+    assert np.all(e2 < 0.2 * e1)  # the remainder after second order is third order
+    a2 = a["second_order"]
+    assert a2["max"] == pytest.approx(e2.max()) and a2["mean"] == pytest.approx(e2.mean())
+    assert a2["within_bar"] is True and a2["seconds_per_sample"] > 0
+    dist = a["distribution"]["groups"]
+    assert [(x["tissue"], x["sd_mm"], x["n"]) for x in dist] == [("csf", 0.3, 2)]
+    rel = np.array([float(r["rel_voltage_change"]) for r in grf])
+    assert dist[0]["sampled_rms"] == pytest.approx(np.sqrt(np.mean(rel**2)))
+    assert dist[0]["ratio"] == pytest.approx(dist[0]["sampled_rms"] / dist[0]["first_order_rms"])
+    assert 0 < dist[0]["ratio_sampling_sd"] <= np.sqrt(1 / (2 * 2))  # n = 2, dof >= 1
     assert g["n"] == 2 and g["n_failed"] == 0
     assert (out / "first_order" / "sensitivity_csf.vtu").is_file()
     assert (out / "first_order" / "sensitivity_csf.png").is_file()

@@ -1,5 +1,6 @@
 """First-order counterpart: host chain vs JAX AD vs FD; covariance vs a dense product; the
-linearisation error falls as the amplitude squared; measures' invariants on a small sphere."""
+linearisation error falls as the amplitude squared; the second-order prediction's remainder as
+its cube; measures' invariants on a small sphere."""
 
 import equinox as eqx
 import jax
@@ -19,7 +20,10 @@ from jaxhead.study import (
     grf_covariance,
     measure,
     morph_nodes,
+    first_order_summary,
     sample_grf,
+    second_order_prediction,
+    taylor_terms,
     voltage_covariance,
 )
 from jaxhead.tissue import Tissue
@@ -60,6 +64,27 @@ def test_voltage_covariance_equals_dense_product(setup):
     dense = S[Tissue.CSF] @ C @ S[Tissue.CSF].T
     np.testing.assert_allclose(voltage_covariance(S[Tissue.CSF], p, 0.5, 15.0, block=7), dense,
                                rtol=1e-10, atol=1e-14 * np.abs(dense).max())
+
+
+def test_first_order_rms_and_dof_match_monte_carlo(setup):
+    """E||S d||^2 = trace(S C S^T) and Var ||S d||^2 = 2 trace((S C S^T)^2) over exact GRF draws
+    (4000 Cholesky samples: the tolerances are 5 standard errors of the estimates)."""
+    mesh, model, protocol, morph, S = setup
+    s = morph.interface("csf")
+    p = s.points(mesh.nodes)
+    v = np.asarray(simulate(model, SIGMA, protocol))
+    fo = first_order_summary(S[Tissue.CSF], p, 0.5, 15.0, v, np.ones_like(v))
+    n = 4000
+    q = np.sum((sample_grf(p, 0.5, 15.0, n_samples=n, seed=11, method="cholesky")
+                @ S[Tissue.CSF].T) ** 2, axis=1)  # ||S d||^2 per draw
+    ms = fo["rms_rel_voltage_change"] ** 2 * np.sum(v * v)  # predicted E||S d||^2
+    dof = fo["effective_dof"]
+    assert 1 <= dof <= len(v)
+    rel_se = np.sqrt(2 / (n * dof))  # relative standard error of the mean of q
+    assert q.mean() == pytest.approx(ms, rel=5 * rel_se)
+    # variance 2 ms^2 / dof; its estimate's relative SE is at most sqrt(14 / n) (dof = 1,
+    # chi^2_1: fourth central moment 60, variance 2, so (60 - 4) / (4 n))
+    assert q.var(ddof=1) == pytest.approx(2 * ms**2 / dof, rel=5 * np.sqrt(14 / n))
 
 
 def test_linearisation_error_is_second_order(setup):
@@ -135,3 +160,72 @@ def test_node_gradients_by_reciprocity_equal_reverse_mode_ad(setup):
     Jad = np.asarray(jax.jacrev(lambda x: f(model, x))(jnp.asarray(mesh.nodes)))
     assert G.shape == Jad.shape == (4, mesh.n_nodes, 3)
     np.testing.assert_allclose(G, Jad, rtol=0, atol=1e-8 * np.abs(Jad).max())
+
+
+@pytest.fixture(scope="module")
+def morph_route(setup):
+    """The csf interface's morph-route voltages V(h z) of one unit GRF field z."""
+    mesh, model, protocol, morph, S = setup
+    s = morph.interface("csf")
+    z = sample_grf(s.points(mesh.nodes), 1.0, 25.0, seed=4)[0]
+    f = eqx.filter_jit(lambda m, x: simulate(m, SIGMA, protocol, nodes=x))
+    return z, lambda d: np.asarray(f(model, morph_nodes(morph, {"csf": d})))
+
+
+def test_second_order_remainder_is_third_order(setup, morph_route):
+    """||dV - (S d + 1/2 D2V[dx, dx])|| falls as h^3 (the first-order remainder as h^2), and
+    the first term is S d."""
+    mesh, model, protocol, morph, S = setup
+    z, V = morph_route
+    v0 = V(np.zeros_like(z))
+    hs = np.array([0.4, 0.2, 0.1, 0.05])
+    r1, r2 = [], []
+    for h in hs:
+        dv = V(h * z) - v0
+        p = second_order_prediction(model, morph, SIGMA, protocol, h * z, "csf")
+        np.testing.assert_allclose(p["first"], S[Tissue.CSF] @ (h * z), rtol=0,
+                                   atol=1e-9 * np.abs(p["first"]).max())
+        np.testing.assert_allclose(p["prediction"], p["first"] + p["second"], rtol=1e-14)
+        r1.append(np.linalg.norm(dv - p["first"]))
+        r2.append(np.linalg.norm(dv - p["prediction"]))
+    slope1 = np.polyfit(np.log(hs), np.log(r1), 1)[0]
+    slope2 = np.polyfit(np.log(hs), np.log(r2), 1)[0]
+    assert slope1 == pytest.approx(2.0, abs=0.1)
+    assert slope2 == pytest.approx(3.0, abs=0.1)
+    assert r2[-1] < 1e-2 * r1[-1]  # the second-order term carries almost all of the remainder
+
+
+def test_second_derivative_matches_central_differences(setup, morph_route):
+    """D2V[dx, dx] vs (V(h z) + V(-h z) - 2 V(0)) / h^2 (truncation O(h^2), h = 1e-2 mm)."""
+    mesh, model, protocol, morph, S = setup
+    z, V = morph_route
+    h = 1e-2
+    fd = (V(h * z) + V(-h * z) - 2 * V(np.zeros_like(z))) / h**2
+    p = second_order_prediction(model, morph, SIGMA, protocol, z, "csf")
+    np.testing.assert_allclose(2 * p["second"], fd, rtol=0, atol=1e-5 * np.abs(fd).max())
+
+
+def test_second_order_term_is_even_and_zero_at_zero(setup, morph_route):
+    mesh, model, protocol, morph, S = setup
+    z, _ = morph_route
+    zero = second_order_prediction(model, morph, SIGMA, protocol, np.zeros_like(z), "csf")
+    assert all(np.all(v == 0) for v in zero.values())
+    p, m = (second_order_prediction(model, morph, SIGMA, protocol, s * z, "csf")
+            for s in (0.3, -0.3))
+    scale = np.abs(p["second"]).max()
+    assert scale > 0
+    np.testing.assert_allclose(m["second"], p["second"], rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(m["first"], -p["first"], rtol=0,
+                               atol=1e-12 * np.abs(p["first"]).max())
+    # homogeneous of degree 2: doubling d quadruples the term (to the rounding of
+    # dx = x(d) - x0, eps |x0| / |dx| ~ 1e-13 relative, squared into the term)
+    q = second_order_prediction(model, morph, SIGMA, protocol, 0.6 * z, "csf")
+    np.testing.assert_allclose(q["second"], 4 * p["second"], rtol=0, atol=1e-9 * scale)
+
+
+def test_taylor_terms_bad_input(setup):
+    mesh, model, protocol, morph, S = setup
+    with pytest.raises(ValueError, match="dx.*shape"):
+        taylor_terms(model, SIGMA, protocol, np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="NaN"):
+        taylor_terms(model, SIGMA, protocol, np.full((mesh.n_nodes, 3), np.nan))

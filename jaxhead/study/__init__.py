@@ -19,6 +19,8 @@ from .first_order import first_order_summary as first_order_summary
 from .first_order import fit_map as fit_map
 from .first_order import linear_prediction as linear_prediction
 from .first_order import node_gradients as node_gradients
+from .first_order import second_order_prediction as second_order_prediction
+from .first_order import taylor_terms as taylor_terms
 from .first_order import voltage_covariance as voltage_covariance
 from .grf import grf_covariance as grf_covariance
 from .grf import sample_grf as sample_grf

@@ -16,6 +16,18 @@ conductivities of the reference model, linearised at the truth, move by A dV wit
 A = (J^T W J)^-1 J^T W (J the (n_rows, 4) tissue Jacobian, W = diag(1 / noise_sd^2)), so
 Cov(sigma_hat) = A Cov(dV) A^T. A zero-mean prior gives zero first-order bias; the bias of
 a sampled study is then second order (it is what the sampled route measures).
+
+Second order, per sample (`second_order_prediction`): the morph is linear in d (the interface
+nodes move by d n, the interior by the fixed linear extension E), so x(d) = x0 + dx with
+dx = x(d) - x0 linear in d and no second derivative of the morph; hence
+
+    dV = D V(x0)[dx] + 1/2 D^2 V(x0)[dx, dx] + O(|d|^3),
+
+both directional derivatives along the single direction dx, taken exactly by JAX
+forward-over-forward mode (`jax.jvp` of `jax.jvp`) through `simulate(..., nodes=x)`: the
+element stiffness's hand-written JVP is itself differentiated, and the sparse solve is a
+`jax.lax.custom_linear_solve` whose tangent is another solve with the same matrix, so every
+solve reuses one factorisation at x0 (four multi-right-hand-side solves in all).
 """
 
 from __future__ import annotations
@@ -25,10 +37,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..fem import ForwardModel, assemble, jacobian, potentials
+from ..fem import ForwardModel, assemble, jacobian, potentials, simulate
 from ..fem.solvers import matvec
 from ..tissue import Tissue
-from .morph import Morph, extension_transpose
+from .morph import Morph, extension_transpose, morph_nodes
 
 
 def node_gradients(model: ForwardModel, sigma, protocol, *, chunk_rows: int = 32) -> np.ndarray:
@@ -150,12 +162,16 @@ def first_order_summary(S: np.ndarray, points, sd_mm: float, correlation_mm: flo
 
     Returns a dict: rms_rel_voltage_change (sqrt(trace Cov) / ||V||, the RMS of the sampled
     rel_voltage_change to first order), rms_change_over_noise (sqrt(mean diag(Cov) / noise^2)),
-    and, with A and sigma, sigma_sd_percent_<tissue> (first-order sd of the fitted
-    conductivities in % of the truth).
+    effective_dof (trace(Cov)^2 / trace(Cov^2): ||dV||^2 is a sum of weighted chi^2 variables
+    with variance 2 trace(Cov^2), so the RMS of n independent samples scatters around the
+    prediction by a relative sd of about sqrt(1 / (2 n effective_dof))), and, with A and sigma,
+    sigma_sd_percent_<tissue> (first-order sd of the fitted conductivities in % of the truth).
     """
     cov = voltage_covariance(S, points, sd_mm, correlation_mm)
     v = np.asarray(volts)
+    tr2 = float(np.sum(cov * cov))  # trace(Cov^2), Cov symmetric
     out = {"rms_rel_voltage_change": float(np.sqrt(np.trace(cov)) / np.linalg.norm(v)),
+           "effective_dof": float(np.trace(cov) ** 2 / tr2) if tr2 > 0 else float("nan"),
            "rms_change_over_noise": float(np.sqrt(np.mean(np.diag(cov) / np.asarray(noise_sd) ** 2)))}
     if A is not None:
         cs = A @ cov @ A.T
@@ -167,3 +183,60 @@ def first_order_summary(S: np.ndarray, points, sd_mm: float, correlation_mm: flo
 def linear_prediction(S: np.ndarray, d) -> np.ndarray:
     """First-order voltage change S d (n_rows,) of a displacement d (n_v,) mm."""
     return np.asarray(S) @ np.asarray(d)
+
+
+@eqx.filter_jit
+def _taylor2(model, sigma, protocol, x0, dx):
+    """(D V(x0)[dx], D^2 V(x0)[dx, dx]) by forward-over-forward mode along dx."""
+    def first(x):
+        return jax.jvp(lambda y: simulate(model, sigma, protocol, nodes=y), (x,), (dx,))[1]
+
+    return jax.jvp(first, (x0,), (dx,))
+
+
+def taylor_terms(model: ForwardModel, sigma, protocol, dx) -> tuple[np.ndarray, np.ndarray]:
+    """First and second directional derivatives of the voltages along a node displacement.
+
+    Arguments:
+        model: the reference ForwardModel (expanded about its own nodes x0).
+        sigma: (4,) or (n_tets,) S/m; protocol: the Protocol (concrete rows).
+        dx: (n_nodes, 3) node displacement in mm.
+
+    Returns:
+        (D V(x0)[dx], D^2 V(x0)[dx, dx]), each (n_rows,) in V; V(x0 + dx) - V(x0) =
+        first + second / 2 + O(|dx|^3).
+    """
+    dx = np.asarray(dx, dtype=np.float64)
+    if dx.shape != (model.n_nodes, 3):
+        raise ValueError(f"`dx` has shape {dx.shape}; pass one displacement per node, "
+                         f"({model.n_nodes}, 3) in mm.")
+    if not np.all(np.isfinite(dx)):
+        raise ValueError("`dx` contains NaN or Inf; pass finite node displacements in mm.")
+    d1, d2 = _taylor2(model, jnp.asarray(sigma, dtype=jnp.float64), protocol,
+                      jnp.asarray(model.nodes, dtype=jnp.float64), jnp.asarray(dx))
+    return np.asarray(d1), np.asarray(d2)
+
+
+def second_order_prediction(model: ForwardModel, morph: Morph, sigma, protocol, d,
+                            tissue) -> dict[str, np.ndarray]:
+    """Voltage change of a morph to second order in the normal displacement d of one interface.
+
+    dV(d) = V(x(d)) - V(x0) ~ S d + 1/2 D^2 V(x0)[dx, dx], dx = x(d) - x0 the morph's node
+    displacement (exactly linear in d: no second derivative of the morph enters).
+
+    Arguments:
+        model: the reference ForwardModel; morph: `build_morph` of the same mesh.
+        sigma: (4,) or (n_tets,) S/m; protocol: the Protocol.
+        d: (n_vertices,) normal displacement of the interface's vertices in mm (outward).
+        tissue: the interface (a Tissue or its name).
+
+    Returns:
+        {"first": S d, "second": 1/2 D^2 V[dx, dx], "prediction": their sum}, each (n_rows,) V.
+        The first term equals `displacement_sensitivity(...)[tissue] @ d` (here by forward mode).
+    """
+    if not np.array_equal(np.asarray(model.nodes), morph.nodes):
+        raise ValueError("`model` and `morph` were built from different meshes; build both from "
+                         "the reference TetMesh.")
+    dx = np.asarray(morph_nodes(morph, {tissue: d})) - morph.nodes
+    first, second = taylor_terms(model, sigma, protocol, dx)
+    return {"first": first, "second": 0.5 * second, "prediction": first + 0.5 * second}
