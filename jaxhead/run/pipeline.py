@@ -18,6 +18,7 @@ import contextlib
 import csv
 import dataclasses
 import datetime
+import enum
 import glob
 import hashlib
 import json
@@ -70,7 +71,10 @@ def _jsonable(obj):
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, dict):
-        return {str(getattr(k, "name", k)).lower(): _jsonable(v) for k, v in obj.items()}
+        # Tissue keys by name; other keys as they are (file names and paths keep their case:
+        # done.json's output and input-file names are compared with the folder's).
+        return {k.name.lower() if isinstance(k, enum.Enum) else str(k): _jsonable(v)
+                for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_jsonable(v) for v in obj]
     if hasattr(obj, "tolist"):
