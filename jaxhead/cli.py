@@ -29,8 +29,8 @@ def _out_dir(cfg, args):
 
 def _cmd_run(args) -> int:
     cfg = _out_dir(load_config(args.config), args)
-    results = run_pipeline(cfg, force=args.force, wait=args.wait,
-                           progress=lambda s: print(s, flush=True))
+    results = run_pipeline(cfg, force=args.force, wait=args.wait, workers=args.workers,
+                           scheduler=args.scheduler, progress=lambda s: print(s, flush=True))
     print(f"run folder: {cfg.run_dir.resolve()}")
     for subject, stages in results.items():
         print(f"  {subject}: {', '.join(stages)}")
@@ -87,6 +87,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="run folder (overrides the config's out_dir)")
     r.add_argument("--wait", action="store_true",
                    help="if another jaxhead run uses the folder, wait for it (default: refuse)")
+    r.add_argument("--workers", type=int, default=None,
+                   help="run the subjects (a cohort's scans) as tasks on an embedded Dask cluster "
+                        "of this many processes (default: one after the other, in this process)")
+    r.add_argument("--scheduler", default=None,
+                   help="address of a running Dask scheduler (e.g. tcp://host:8786) for the "
+                        "subjects' tasks instead")
     r.set_defaults(fn=_cmd_run)
 
     rp = sub.add_parser("report", help="(re)write <run folder>/report.html from a run's files")

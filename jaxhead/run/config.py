@@ -38,6 +38,11 @@ Modality = Literal["mri", "ct"]
 MEASURED_REJECT_SIGMA = 5.0
 
 
+def is_pattern(path: str) -> bool:
+    """Whether `path` is a glob pattern (has `*`, `?` or `[`)."""
+    return any(c in path for c in "*?[")
+
+
 @dataclass(frozen=True, kw_only=True)
 class InputConfig:
     """Where the subject comes from.
@@ -49,8 +54,12 @@ class InputConfig:
             saying so) and the mesh stage takes the loaded mesh instead of meshing.
         modalities: with source="phantom", one subject per modality ("mri", "ct").
         modality: with source="file", the scan's modality.
-        path: with source="file", a NIfTI/Analyze volume.
-        labels_path: optional label map (0..4) to use instead of segmenting.
+        path: with source="file", a NIfTI/Analyze volume; or a cohort: a glob pattern
+            ("data/sub-*/anat/*_T1w.nii.gz", `**` for any depth) or a list of files and
+            patterns, one subject each (`jaxhead.run.pipeline.subjects` names them: the
+            BIDS `sub-XX` and `ses-YY` entities when the path has them, else the file
+            name without its extension). Relative paths are relative to the current folder.
+        labels_path: optional label map (0..4) to use instead of segmenting (one scan only).
         voxel_mm: phantom voxel size, or the size to resample a loaded scan to (None keeps it).
         seed: phantom subject seed.
         noise: phantom noise level (MRI: fraction of white-matter intensity; CT: HU); None = default.
@@ -70,7 +79,7 @@ class InputConfig:
     source: Literal["phantom", "file", "mesh"] = "phantom"
     modalities: tuple[Modality, ...] = ("mri", "ct")
     modality: Modality = "mri"
-    path: str | None = None
+    path: str | tuple[str, ...] | None = None
     labels_path: str | None = None
     voxel_mm: float | None = 2.0
     seed: int = 0
@@ -85,7 +94,16 @@ class InputConfig:
         if self.source not in ("phantom", "file", "mesh"):
             raise ValueError(f'[input] `source` = {self.source!r}; use "phantom", "file" or "mesh".')
         if self.source == "file" and not self.path:
-            raise ValueError('[input] source = "file" needs `path` = "scan.nii.gz".')
+            raise ValueError('[input] source = "file" needs `path` = "scan.nii.gz" (or a cohort: '
+                             'a pattern "data/sub-*/anat/*_T1w.nii.gz" or a list of files).')
+        if self.path is not None and self.source != "file":
+            raise ValueError(f"[input] `path` = {self.path!r} is set but source = "
+                             f"{self.source!r}; set source = \"file\" to read that scan, or "
+                             "remove path.")
+        if self.is_cohort and self.labels_path is not None:
+            raise ValueError(f"[input] `labels_path` = {self.labels_path!r} is one label map but "
+                             f"`path` = {self.path!r} is a cohort of scans; remove labels_path "
+                             "(each scan is segmented), or run each scan with its labels.")
         if self.voxel_mm is not None and not self.voxel_mm > 0:
             raise ValueError(f"[input] `voxel_mm` must be > 0, got {self.voxel_mm}.")
         if self.source == "phantom" and not self.modalities:
@@ -123,6 +141,13 @@ class InputConfig:
         if self.facing not in ("check", "reorient", "ignore"):
             raise ValueError(f'[input] `facing` = {self.facing!r}; use "check", "reorient" or '
                              '"ignore".')
+
+    @property
+    def is_cohort(self) -> bool:
+        """`path` is a glob pattern or a list: one subject per file (folders named by subject)."""
+        return self.source == "file" and (
+            isinstance(self.path, tuple) or (isinstance(self.path, str) and is_pattern(self.path)
+                                             and not Path(self.path).is_file()))
 
     def mesh_tissue_map(self):
         """`tissue_map` as `load_mesh` takes it: label keys ("3") as ints, names as given."""

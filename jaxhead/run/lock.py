@@ -1,5 +1,9 @@
 """One process per run folder: an advisory lock on ``<run_dir>/.jaxhead.lock``.  [host]
 
+A cohort's subjects may run in other processes (Dask workers): each holds its subject's own lock,
+``<run_dir>/.jaxhead-<subject>.lock``, while it works in ``<run_dir>/<subject>/``, so that a task
+left running by a killed driver and the task of the next run never write one folder together.
+
 The lock is a kernel lock (``flock``) on the file, so it is released when its holder exits in any
 way, ``kill -9`` included: a lock left by a dead process is never "held". The file also records
 who holds it (pid, host, start time, command) for the message a second process prints; a record
@@ -55,18 +59,20 @@ def _alive(pid: int) -> bool:
 
 @contextlib.contextmanager
 def run_lock(run_dir: str | os.PathLike, *, wait: bool = False,
-             say: Callable[[str], None] = log.info) -> Iterator[Path]:
-    """Hold the lock of a run folder for the duration of the block.
+             say: Callable[[str], None] = log.info, subject: str | None = None) -> Iterator[Path]:
+    """Hold the lock of a run folder (or of one subject in it) for the duration of the block.
 
     Arguments:
         run_dir: the run folder (must exist).
         wait: if another process holds the lock, wait for it (saying so) instead of raising.
         say: where the waiting and stale-lock messages go.
+        subject: lock only this subject's folder (``.jaxhead-<subject>.lock``), as a worker does.
 
     Raises:
         RunLockedError: the folder is locked by another process and `wait` is False.
     """
-    path = Path(run_dir) / LOCK_NAME
+    path = Path(run_dir) / (LOCK_NAME if subject is None else f".jaxhead-{subject}.lock")
+    what = f"run folder {run_dir}" + (f" (subject {subject})" if subject is not None else "")
     fh = open(path, "a+")
     try:
         try:
@@ -77,12 +83,12 @@ def run_lock(run_dir: str | os.PathLike, *, wait: bool = False,
             who = _describe(_holder(fh))
             if not wait:
                 raise RunLockedError(
-                    f"run folder {str(run_dir)!r} is in use by {who}; wait for it to finish "
+                    f"{what} is in use by {who}; wait for it to finish "
                     "(`jaxhead run --wait`), or write to another folder (`--out`).") from None
-            say(f"run folder {run_dir} is in use by {who}; waiting for it to finish ...")
+            say(f"{what} is in use by {who}; waiting for it to finish ...")
             t0 = time.monotonic()
             fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
-            say(f"run folder {run_dir} is free after {time.monotonic() - t0:.0f} s; continuing")
+            say(f"{what} is free after {time.monotonic() - t0:.0f} s; continuing")
         old = _holder(fh)
         if old.get("pid") and old.get("host") == socket.gethostname() \
                 and not _alive(int(old["pid"])):

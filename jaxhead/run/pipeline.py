@@ -15,21 +15,31 @@ at a time works in a run folder (`lock.py`).
 """
 
 import contextlib
+import csv
 import dataclasses
 import datetime
+import enum
+import glob
 import hashlib
 import json
 import logging
 import os
 import secrets
 import shutil
+import sys
 import time
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
 
+import jax
+from distributed import as_completed
+from tqdm import tqdm
+
 from .._files import atomic_write_path, file_digest
-from .config import RunConfig
+from ..io import VOLUME_EXTENSIONS
+from ..study import connect
+from .config import RunConfig, is_pattern
 from .declare import StageSpec, spec_of
 from .lock import run_lock
 from .progress import heartbeat
@@ -61,7 +71,10 @@ def _jsonable(obj):
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, dict):
-        return {str(getattr(k, "name", k)).lower(): _jsonable(v) for k, v in obj.items()}
+        # Tissue keys by name; other keys as they are (file names and paths keep their case:
+        # done.json's output and input-file names are compared with the folder's).
+        return {k.name.lower() if isinstance(k, enum.Enum) else str(k): _jsonable(v)
+                for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_jsonable(v) for v in obj]
     if hasattr(obj, "tolist"):
@@ -271,12 +284,88 @@ def _oserror_text(e: OSError) -> str:
     return str(e) or type(e).__name__
 
 
+_BIDS_ENTITIES = ("sub", "ses")
+
+
+def subject_name(path: str | os.PathLike) -> str:
+    """A cohort subject's folder name: its BIDS `sub-XX` (and `ses-YY`) entities, else its stem.
+
+    The entities are read from the file name first, then from its folders
+    (``data/sub-01/ses-2/anat/T1w.nii.gz`` -> ``sub-01_ses-2``); a path without ``sub-`` gives
+    the file name without its extension (``.nii.gz``, ``.nii``, ``.hdr``, ``.img``).
+    """
+    path = Path(path)
+    found = {}
+    for part in [path.name, *reversed(path.parent.parts)]:
+        for token in part.split("_"):
+            key, sep, value = token.partition("-")
+            if sep and key in _BIDS_ENTITIES and key not in found and value \
+                    and value.split(".")[0].isalnum():
+                found[key] = f"{key}-{value.split('.')[0]}"
+    if "sub" in found:
+        return "_".join(found[k] for k in _BIDS_ENTITIES if k in found)
+    name = path.name
+    for ext in sorted(VOLUME_EXTENSIONS, key=len, reverse=True):
+        if name.lower().endswith(ext):
+            return name[:-len(ext)]
+    return path.stem
+
+
+def cohort_files(cfg: RunConfig) -> list[str]:
+    """The scans of a cohort config (`[input] path` a pattern or a list), in sorted order.
+
+    Raises:
+        ValueError: a pattern that matches no file, or a listed file that does not exist.
+    """
+    entries = (cfg.input.path,) if isinstance(cfg.input.path, str) else cfg.input.path
+    files = []
+    for entry in entries:
+        if Path(entry).is_file():
+            files.append(entry)
+        elif is_pattern(entry):
+            matched = sorted(p for p in glob.glob(entry, recursive=True) if Path(p).is_file())
+            if not matched:
+                raise ValueError(
+                    f"[input] `path` pattern {entry!r} matches no file (relative to "
+                    f"{Path.cwd()}); check the pattern, e.g. \"data/sub-*/anat/*_T1w.nii.gz\", "
+                    "or list the scans.")
+            files += matched
+        else:
+            raise ValueError(f"[input] `path` entry {entry!r} is not a file (relative paths are "
+                             f"relative to {Path.cwd()}); fix or remove it.")
+    return files
+
+
 def subjects(cfg: RunConfig) -> list[Subject]:
-    """The subjects a run processes (one per phantom modality, or the one input file)."""
+    """The subjects a run processes: one per phantom modality, the one input file (folder
+    "subject"), or one per file of a cohort (`[input] path` a pattern or list; `subject_name`).
+
+    Raises:
+        ValueError: a cohort pattern matching nothing, a missing file, or two files with one
+            subject name (both named).
+    """
     root = cfg.run_dir
     if cfg.input.source == "phantom":
         return [Subject(m, m, root / m) for m in cfg.input.modalities]
-    return [Subject("subject", cfg.input.modality, root / "subject")]
+    if not cfg.input.is_cohort:
+        return [Subject("subject", cfg.input.modality, root / "subject")]
+    out: dict[str, Subject] = {}
+    for f in cohort_files(cfg):
+        name = subject_name(f)
+        if name in out:
+            raise ValueError(
+                f"[input] `path` = {cfg.input.path!r}: {out[name].path!r} and {f!r} are both "
+                f"subject {name!r} (one folder each); narrow the pattern to one scan per "
+                "subject and session (e.g. *_run-1_T1w.nii.gz), or list the files.")
+        out[name] = Subject(name, cfg.input.modality, root / name, path=f)
+    return list(out.values())
+
+
+def subject_config(cfg: RunConfig, subject: Subject) -> RunConfig:
+    """The config one subject's stages run with: a cohort's `[input] path` is its own file."""
+    if subject.path is None:
+        return cfg
+    return dataclasses.replace(cfg, input=dataclasses.replace(cfg.input, path=subject.path))
 
 
 def _stage_order(cfg: RunConfig, stages: dict) -> list[str]:
@@ -308,8 +397,15 @@ def _make_run_dir(run_dir: Path) -> None:
 
 def run_pipeline(cfg: RunConfig, *, force: bool = False, stages: dict[str, StageFn] | None = None,
                  progress: Callable[[str], None] | None = None, wait: bool = False,
-                 heartbeat_s: float = 30.0, report: bool = True) -> dict:
+                 heartbeat_s: float = 30.0, report: bool = True, workers: int | None = None,
+                 scheduler: str | None = None) -> dict:
     """Run every configured stage for every subject; returns {subject: {stage: summary}}.
+
+    Subjects are independent: a subject that fails is recorded (its error in
+    ``<run_dir>/subjects.csv`` and summary.json) and the others still run; the error is raised
+    at the end. With `workers` >= 2 or a `scheduler`, each subject is a Dask task
+    (`jaxhead.study.connect`: an embedded LocalCluster of single-threaded processes, or a
+    running scheduler); otherwise they run one after the other in this process.
 
     Arguments:
         cfg: the run configuration.
@@ -317,42 +413,160 @@ def run_pipeline(cfg: RunConfig, *, force: bool = False, stages: dict[str, Stage
         stages: the stage functions by name, in pipeline order (default: `jaxhead.run.STAGES`);
             each may declare what it reads with `jaxhead.run.declare.stage`.
         progress: called with one line of text as stages start and finish (default: logging).
+            Subjects run by workers report their lines when they finish.
         wait: if another process is running in the same folder, wait for it instead of raising
             `RunLockedError`.
         heartbeat_s: seconds between "still running" lines when not on a terminal (0: none).
         report: write ``<run_dir>/report.html`` at the end (also after a failure).
+        workers: processes of an embedded Dask cluster, one subject per task (None or 1: in
+            this process).
+        scheduler: address of a running Dask scheduler ("tcp://host:8786") instead.
 
     Raises:
         ValueError (StageError, RunLockedError): a bad config, a stage that failed on its input
-            or environment, or a folder in use.
+            or environment (with several subjects failed: StageError naming each), or a folder
+            in use. A subject's unexpected error (a bug) in a one-subject run is re-raised as is.
     """
     stages = STAGES if stages is None else stages
     order = _stage_order(cfg, stages)
+    if workers is not None and (isinstance(workers, bool) or int(workers) != workers
+                                or workers < 1):
+        raise ValueError(f"`workers` = {workers!r}; use a whole number >= 1 (1: in this "
+                         "process).")
     say = progress or log.info
     run_dir = cfg.run_dir
+    todo = subjects(cfg)  # a cohort pattern matching nothing: an error before any work
     _make_run_dir(run_dir)
-    sections = [f.name for f in dataclasses.fields(cfg) if f.name not in ("name", "out_dir", "stages")]
-    results: dict[str, dict] = {}
+    rows: dict[str, dict] = {}
+    errors: dict[str, BaseException] = {}
     with run_lock(run_dir, wait=wait, say=say):
         try:
-            for subject in subjects(cfg):
-                _recover(subject.root, say)
-                results[subject.name] = {}
-                for name in order:
-                    earlier = list(stages)[:list(stages).index(name)]
-                    spec = spec_of(stages[name], name, earlier, sections)
-                    results[subject.name][name] = _run_stage(
-                        cfg, subject, name, stages[name], spec, force, say, heartbeat_s)
+            if workers in (None, 1) and scheduler is None:
+                for subject in todo:
+                    row, exc = _subject(cfg, subject, order, stages, force, say, heartbeat_s)
+                    rows[subject.name] = row
+                    if exc is not None:
+                        errors[subject.name] = exc
+            else:
+                _run_tasks(cfg, todo, order, stages, force, say, heartbeat_s, workers,
+                           scheduler, rows)
         finally:
-            if results:
+            if rows:
+                results = {n: r["stages"] | ({"error": r["error"]} if r["error"] else {})
+                           for n, r in rows.items()}
                 _write_json(run_dir / "summary.json", results)
+                _write_subjects_csv(run_dir / SUBJECTS_CSV, rows.values())
             if report:
                 try:
                     path = write_report(cfg, stages=list(stages))
                     say(f"report: {path}")
                 except Exception as e:  # the report never hides the run's own outcome
                     log.warning("could not write the report page: %s: %s", type(e).__name__, e)
-    return results
+    failed = [r for r in rows.values() if r["status"] != "done"]
+    if len(failed) == 1 and failed[0]["subject"] in errors:
+        raise errors[failed[0]["subject"]]  # its own exception, as before cohorts
+    if failed:
+        text = "; ".join(f"[{r['subject']}] {r['error']}" for r in failed)
+        err = StageError(f"{len(failed)} of {len(rows)} subjects failed ({text}); the others "
+                         f"finished. See {run_dir / SUBJECTS_CSV}; a rerun retries them.")
+        err.results = {n: r["stages"] for n, r in rows.items()}
+        raise err
+    return {n: r["stages"] for n, r in rows.items()}
+
+
+SUBJECTS_CSV = "subjects.csv"
+#: subjects.csv columns: the cohort table (n_tets when the run meshed the subject).
+SUBJECT_COLUMNS = ("subject", "path", "status", "seconds", "n_tets", "error")
+
+
+def _write_subjects_csv(path: Path, rows) -> None:
+    with atomic_write_path(path) as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(SUBJECT_COLUMNS), extrasaction="ignore")
+            w.writeheader()
+            for r in rows:
+                w.writerow(r | {"seconds": f"{r['seconds']:.1f}"})
+
+
+def _error_text(e: BaseException, subject: str) -> str:
+    """One line for subjects.csv: the error without the subject's own "[name] " label."""
+    text = " ".join(str(e).split())
+    if not isinstance(e, StageError):
+        return f"{type(e).__name__}: {text}"
+    return text.removeprefix(f"[{subject}] ")
+
+
+def _subject(cfg: RunConfig, subject: Subject, order: list[str], stages: dict, force: bool, say,
+             heartbeat_s: float) -> tuple[dict, Exception | None]:
+    """Run one subject's stages under its lock: (its subjects.csv row + stage summaries, the
+    exception that stopped it or None)."""
+    scfg = subject_config(cfg, subject)
+    sections = [f.name for f in dataclasses.fields(cfg) if f.name not in ("name", "out_dir", "stages")]
+    row = {"subject": subject.name, "path": subject.path or (scfg.input.path or ""),
+           "status": "failed", "seconds": 0.0, "n_tets": "", "error": "", "stages": {}}
+    t0 = time.perf_counter()
+    exc = None
+    try:
+        with run_lock(cfg.run_dir, wait=True, say=say, subject=subject.name):
+            _recover(subject.root, say)
+            for name in order:
+                earlier = list(stages)[:list(stages).index(name)]
+                spec = spec_of(stages[name], name, earlier, sections)
+                row["stages"][name] = _run_stage(scfg, subject, name, stages[name], spec, force,
+                                                 say, heartbeat_s)
+        row["status"] = "done"
+    except Exception as e:  # noqa: BLE001 (recorded; the other subjects still run)
+        exc = e
+        row["error"] = _error_text(e, subject.name)
+    row["seconds"] = time.perf_counter() - t0
+    mesh = row["stages"].get("mesh") or {}
+    row["n_tets"] = mesh.get("n_tets", "") if isinstance(mesh, dict) else ""
+    return row, exc
+
+
+def run_subject(cfg: RunConfig, subject: Subject, order: list[str], stages: dict, force: bool,
+                heartbeat_s: float, x64: bool) -> dict:
+    """One subject as a Dask task (plain, picklable arguments): its row, with the progress
+    lines it would have printed under "lines". A failure is in the row, never raised."""
+    jax.config.update("jax_enable_x64", x64)  # the driver's setting (the CLI's: float64)
+    lines: list[str] = []
+    row, _ = _subject(cfg, subject, order, stages, force, lines.append, heartbeat_s)
+    return row | {"lines": lines}
+
+
+def _run_tasks(cfg, todo, order, stages, force, say, heartbeat_s, workers, scheduler,
+               rows: dict) -> None:
+    """Run the subjects as Dask tasks, filling `rows` as they finish."""
+    client, cluster = connect(workers, scheduler)  # an unreachable scheduler fails here
+    try:
+        x64 = bool(jax.config.read("jax_enable_x64"))
+        futures = {client.submit(run_subject, cfg, s, order, stages, force, heartbeat_s, x64,
+                                 pure=False, key=f"jaxhead-subject-{s.name}-{secrets.token_hex(4)}"): s
+                   for s in todo}
+        say(f"{len(todo)} subjects as Dask tasks on {client.scheduler.address}")
+        bar = tqdm(total=len(todo), desc="subjects", unit="subject") if sys.stderr.isatty() else None
+        for fut in as_completed(futures):
+            s = futures[fut]
+            try:
+                row = fut.result()
+            except Exception as e:  # noqa: BLE001 (a worker died: recorded, the others run)
+                row = {"subject": s.name, "path": s.path or "", "status": "failed",
+                       "seconds": 0.0, "n_tets": "", "error": _error_text(e, s.name), "stages": {}}
+            for line in row.pop("lines", []):
+                say(line)
+            rows[s.name] = row
+            say(f"[{s.name}] {row['status']} in {row['seconds']:.1f} s"
+                + (f": {row['error']}" if row["error"] else ""))
+            if bar is not None:
+                bar.update(1)
+        if bar is not None:
+            bar.close()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    for s in todo:  # subjects.csv in the cohort's order, not the order they finished
+        rows[s.name] = rows.pop(s.name)
 
 
 def _run_stage(cfg, subject: Subject, name: str, fn: StageFn, spec: StageSpec, force: bool,

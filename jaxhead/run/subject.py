@@ -6,7 +6,7 @@ from pathlib import Path
 
 @dataclass(frozen=True)
 class Subject:
-    """One head in a run: its name, modality and folder.
+    """One head in a run: its name, modality, folder and (in a cohort) its scan.
 
     While a stage runs, the pipeline hands it a view of the subject (`staged`) in which the
     stage's own folder is a temporary one (renamed into place when the stage succeeds) and in
@@ -17,13 +17,15 @@ class Subject:
     name: str
     modality: str
     root: Path
+    path: str | None = None
     stage: str | None = field(default=None, compare=False)
     staging: Path | None = field(default=None, compare=False, repr=False)
     reads: tuple[str, ...] | None = field(default=None, compare=False, repr=False)
 
     def staged(self, stage: str, staging: Path, reads: tuple[str, ...]) -> "Subject":
         """The view of this subject that the stage `stage` runs with (see the class docstring)."""
-        return Subject(self.name, self.modality, self.root, stage, staging, tuple(reads))
+        return Subject(self.name, self.modality, self.root, self.path, stage, staging,
+                       tuple(reads))
 
     def _check(self, stage: str, what: str) -> None:
         if self.stage is None or stage == self.stage:
