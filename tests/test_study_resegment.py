@@ -218,3 +218,11 @@ def test_resegment_study_end_to_end(tmp_path):
     assert min(float(noisy[c]) for c in DICE_COLUMNS) < 1 and float(noisy["rel_voltage_change"]) > 0
     seg = json.loads((out / "reference" / "segmentation.json").read_text())
     assert 0.5 < seg["dice_vs_phantom_truth"]["brain"] <= 1
+
+
+def test_missing_scan_file_fails_before_any_work(tmp_path):
+    d = cfg_dict({"source": "scan", "scan_path": str(tmp_path / "nope.nii.gz"), "segmented": False})
+    d["out_dir"] = str(tmp_path / "run")
+    with pytest.raises(ValueError, match="scan_path = .*nope.nii.gz' does not exist"):
+        run_study(study_config_from_dict(d), workers=1, progress=False)
+    assert not (tmp_path / "run").exists()
