@@ -6,11 +6,14 @@ from .config import PerturbationConfig as PerturbationConfig
 from .config import ReferenceConfig as ReferenceConfig
 from .config import StudyConfig as StudyConfig
 from .config import load_study_config as load_study_config
+from .config import segment_config as segment_config
 from .config import study_config_from_dict as study_config_from_dict
 from .engine import COLUMNS as COLUMNS
+from .engine import DICE_COLUMNS as DICE_COLUMNS
 from .engine import connect as connect
 from .engine import expand_samples as expand_samples
 from .engine import load_reference as load_reference
+from .engine import load_reference_scan as load_reference_scan
 from .engine import prepare_reference as prepare_reference
 from .engine import run_study as run_study
 from .engine import summarise as summarise
@@ -47,5 +50,9 @@ from .perturb import perturb_labels as perturb_labels
 from .perturb import scale_thickness as scale_thickness
 from .perturb import skull_close as skull_close
 from .perturb import skull_hole as skull_hole
+from .resegmentation import perturb_scan as perturb_scan
+from .resegmentation import reference_atlas as reference_atlas
+from .resegmentation import resegment as resegment
+from .resegmentation import robust_range as robust_range
 
-__all__ = sorted(n for n in dir() if not n.startswith("_") and n not in ("annotations",) and n not in ("grf", "morph", "measures", "first_order", "perturb", "config", "engine"))
+__all__ = sorted(n for n in dir() if not n.startswith("_") and n not in ("annotations",) and n not in ("grf", "morph", "measures", "first_order", "perturb", "config", "engine", "resegmentation"))

@@ -18,6 +18,7 @@ from typing import Literal
 
 import numpy as np
 
+from ..segmentation import RegisterConfig, SegmentConfig
 from ..tissue import DEFAULT_SIGMA_S_M, TISSUE_NAMES, Tissue
 from .measures import MeasureConfig
 from .perturb import LABEL_KINDS
@@ -26,6 +27,8 @@ from .perturb import LABEL_KINDS
 KINDS: dict[str, tuple[tuple[str, ...], str]] = {
     "grf": (("morph",), "sd in mm of a smooth random normal displacement of the interface"),
     **{k: (("remesh",), v) for k, v in LABEL_KINDS.items()},
+    "resegment": (("remesh",), "sd of the noise added to the scan before it is segmented again, "
+                  "in % of the scan's robust intensity range (P99 - P1 of all its voxels)"),
     "electrode_position": (("electrodes",), "sd in mm of each electrode's tangential shift"),
 }
 ROUTES = ("morph", "remesh", "electrodes")
@@ -37,29 +40,93 @@ def _closest(name: str, valid) -> str:
     return f" (did you mean {m[0]!r}?)" if m else ""
 
 
+#: SegmentConfig fields a study may set ([study.reference] segment, a resegment perturbation's
+#: settings); the modality is [study.reference] modality.
+SEGMENT_SETTINGS = tuple(f.name for f in dataclasses.fields(SegmentConfig) if f.name != "modality")
+
+
+def _check_settings(overrides, where: str) -> dict:
+    if not isinstance(overrides, dict):
+        raise ValueError(f"{where} must be a table of SegmentConfig fields, e.g. {{beta = 0.2}}, "
+                         f"got {overrides!r}.")
+    for k in overrides:
+        if k == "modality":
+            raise ValueError(f"{where} sets `modality`; the scan's modality is [study.reference] "
+                             "modality, remove it here.")
+        if k not in SEGMENT_SETTINGS:
+            raise ValueError(f"{where} has unknown SegmentConfig key {k!r}"
+                             f"{_closest(k, SEGMENT_SETTINGS)}; valid keys: {sorted(SEGMENT_SETTINGS)}.")
+    reg = overrides.get("register")
+    if reg is not None and not isinstance(reg, (dict, RegisterConfig)):
+        raise ValueError(f"{where}.register must be a table of RegisterConfig fields, got {reg!r}.")
+    if isinstance(reg, dict):
+        names = [f.name for f in dataclasses.fields(RegisterConfig)]
+        for k in reg:
+            if k not in names:
+                raise ValueError(f"{where}.register has unknown key {k!r}{_closest(k, names)}; "
+                                 f"valid keys: {sorted(names)}.")
+    return dict(overrides)
+
+
+def segment_config(modality: str, overrides: dict | None = None, *,
+                   base: SegmentConfig | None = None, where: str = "settings") -> SegmentConfig:
+    """A SegmentConfig of `modality` with `overrides` (a TOML table of its fields) applied.
+
+    Arguments:
+        modality: "mri" or "ct" (the scan's; not overridable).
+        overrides: {field: value}; `register` may be a table of RegisterConfig fields.
+        base: the config the overrides apply to (default: SegmentConfig's defaults).
+        where: the config section named in errors.
+
+    Returns:
+        The SegmentConfig (unknown keys name the closest valid one; its own checks name a bad value).
+    """
+    kw = _check_settings(overrides or {}, where)
+    base = base if base is not None else SegmentConfig(modality=modality)
+    if isinstance(kw.get("register"), dict):
+        kw["register"] = dataclasses.replace(
+            base.register, **{k: tuple(v) if isinstance(v, list) else v
+                              for k, v in kw["register"].items()})
+    try:
+        return dataclasses.replace(base, modality=modality, **kw)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{where}: {e}") from None
+
+
 @dataclass(frozen=True, kw_only=True)
 class ReferenceConfig:
     """The unperturbed head.
 
     Arguments:
-        source: "phantom" (a synthetic head, `jaxhead.make_head`), "labels" (a label map file,
-            meshed by the library) or "mesh" (a mesh file, `jaxhead.load_mesh`; no label map, so
-            only the morph and electrode routes).
-        modality, seed: the phantom's modality and subject seed.
-        voxel_mm: phantom voxel size (or the size a loaded label map is resampled to; None keeps).
+        source: "phantom" (a synthetic head, `jaxhead.make_head`: scan and true labels),
+            "scan" (a scan file, segmented by the library), "labels" (a label map file, meshed by
+            the library) or "mesh" (a mesh file, `jaxhead.load_mesh`; no label map, so only the
+            morph and electrode routes).
+        modality, seed: the scan's modality (phantom and scan) and the phantom's subject seed.
+        voxel_mm: phantom voxel size (or the size a loaded scan or label map is resampled to;
+            None keeps).
         labels_path: with source = "labels", a NIfTI label map (0..4).
+        scan_path: with source = "scan", a NIfTI scan (MRI magnitude or CT in HU).
+        segmented: phantom: build the reference head from `jaxhead.segment` of the phantom's scan
+            instead of its true labels (needed by resegment perturbations); source = "scan" is
+            always segmented.
+        segment: SegmentConfig fields for that segmentation (e.g. {atlas = "phantom", beta = 0.4});
+            the atlas is `default_atlas` of SegmentConfig's atlas, modality and atlas_voxel_mm.
         n_elec, electrode_radius_mm, contact_impedance_ohm_m2: electrodes spread over the head.
         protocol: "adjacent" or "opposite"; current_a: injected current (A).
         sigma_s_m: conductivity per tissue (S/m), missing keys take the defaults.
         stiffening: the morph's Jacobian-based stiffening exponent (`build_morph`).
     """
 
-    source: Literal["phantom", "labels", "mesh"] = "phantom"
+    source: Literal["phantom", "scan", "labels", "mesh"] = "phantom"
     modality: Literal["mri", "ct"] = "mri"
     seed: int = 0
     voxel_mm: float | None = 4.0
     labels_path: str | None = None
+    scan_path: str | None = None
     mesh_path: str | None = None
+    segmented: bool = False
+    segment: dict = field(default_factory=dict)
     n_elec: int = 16
     electrode_radius_mm: float = 6.0
     contact_impedance_ohm_m2: float = 0.02
@@ -69,9 +136,20 @@ class ReferenceConfig:
     stiffening: float = 1.0
 
     def __post_init__(self):
-        if self.source not in ("phantom", "labels", "mesh"):
+        if self.source not in ("phantom", "scan", "labels", "mesh"):
             raise ValueError(f"[study.reference] source = {self.source!r}; use 'phantom', "
-                             "'labels' or 'mesh'.")
+                             "'scan', 'labels' or 'mesh'.")
+        if self.source == "scan" and not self.scan_path:
+            raise ValueError('[study.reference] source = "scan" needs scan_path = "t1.nii.gz".')
+        if not isinstance(self.segmented, (bool, np.bool_)):
+            raise ValueError(f"[study.reference] segmented = {self.segmented!r}; use true or false.")
+        if self.segmented and self.source in ("labels", "mesh"):
+            raise ValueError(f"[study.reference] segmented = true, but source = {self.source!r} "
+                             "has no scan to segment; use source = \"phantom\" or \"scan\".")
+        if self.segment and not self.has_scan_labels:
+            raise ValueError("[study.reference] segment is set, but the reference head is not "
+                             "segmented; set segmented = true (phantom) or source = \"scan\", "
+                             "or remove it.")
         if self.source == "mesh" and not self.mesh_path:
             raise ValueError('[study.reference] source = "mesh" needs mesh_path = "head.vtu".')
         if self.source == "labels" and not self.labels_path:
@@ -94,6 +172,18 @@ class ReferenceConfig:
             if not float(v) > 0:
                 raise ValueError(f"[study.reference] sigma_s_m.{k} = {v}; conductivities are > 0 S/m.")
 
+        if self.has_scan_labels:
+            self.segment_config()  # bad keys and values fail here, before any work
+
+    @property
+    def has_scan_labels(self) -> bool:
+        """The reference labels are the library's segmentation of a scan (phantom or file)."""
+        return self.source == "scan" or (self.source == "phantom" and bool(self.segmented))
+
+    def segment_config(self) -> SegmentConfig:
+        """The reference segmentation's SegmentConfig."""
+        return segment_config(self.modality, self.segment, where="[study.reference] segment")
+
     def sigma(self) -> np.ndarray:
         """(4,) conductivities in S/m (BRAIN, CSF, SKULL, SCALP)."""
         d = {**dict(zip(TISSUE_NAMES, DEFAULT_SIGMA_S_M)), **self.sigma_s_m}
@@ -106,12 +196,16 @@ class PerturbationConfig:
 
     Arguments:
         kind: one of `KINDS` ("grf", "dilate", "erode", "skull_scale", "csf_scale", "skull_hole",
-            "skull_close", "electrode_position").
+            "skull_close", "resegment", "electrode_position").
         tissue: the interface or tissue ("brain", "csf", "skull", "scalp") for grf/dilate/erode.
         amplitude: the kind's amplitude (`KINDS` gives its meaning and unit), >= 0.
         correlation_mm: the grf's correlation length in mm.
         samples: number of samples (seeds derived from the study's seed).
         route: "morph", "remesh" or "electrodes"; default the kind's only route.
+        bias_percent: resegment, MRI only: a random smooth multiplicative bias field of about
+            +-bias_percent % on the scan (`jaxhead.study.perturb_scan`).
+        settings: resegment only: SegmentConfig fields changed from [study.reference] segment
+            for the re-segmentation (e.g. {beta = 0.2}).
     """
 
     kind: str
@@ -120,6 +214,8 @@ class PerturbationConfig:
     correlation_mm: float = 20.0
     samples: int = 1
     route: str | None = None
+    bias_percent: float = 0.0
+    settings: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -151,6 +247,14 @@ class PerturbationConfig:
         if self.kind in ("skull_scale",) and a == 0:
             raise ValueError("[[study.perturbations]] skull_scale amplitude = 0 removes the skull; "
                              "use a factor > 0.")
+        if self.kind != "resegment" and (self.settings or self.bias_percent):
+            raise ValueError(f"[[study.perturbations]] kind {self.kind!r} sets settings or "
+                             "bias_percent; they belong to kind = \"resegment\" only.")
+        _check_settings(self.settings, "[[study.perturbations]] settings")
+        if not (isinstance(self.bias_percent, (int, float)) and np.isfinite(self.bias_percent)
+                and self.bias_percent >= 0):
+            raise ValueError(f"[[study.perturbations]] bias_percent = {self.bias_percent!r}; it "
+                             "must be a number >= 0 (about +-bias_percent % of bias field).")
         if not self.correlation_mm > 0:
             raise ValueError(f"[[study.perturbations]] correlation_mm = {self.correlation_mm}; it "
                              "must be > 0 mm.")
@@ -189,6 +293,21 @@ class StudyConfig:
     retry_failed: bool = False
 
     def __post_init__(self):
+        reseg = [p for p in self.perturbations if p.kind == "resegment"]
+        rc = self.reference
+        if reseg and not rc.has_scan_labels:
+            fix = ("set segmented = true (the reference head is then the segmentation of the "
+                   "phantom's scan, not its true labels)" if rc.source == "phantom" else
+                   f"source = {rc.source!r} has no scan; use source = \"scan\" or \"phantom\"")
+            raise ValueError("[[study.perturbations]] resegment segments the reference's scan again "
+                             "and compares with the reference segmentation, but [study.reference] "
+                             f"is not a segmented scan: {fix}.")
+        for p in reseg:
+            segment_config(rc.modality, p.settings, base=rc.segment_config(),
+                           where="[[study.perturbations]] settings")
+            if p.bias_percent and rc.modality == "ct":
+                raise ValueError(f"[[study.perturbations]] bias_percent = {p.bias_percent} with a "
+                                 "CT reference: a CT has no multiplicative bias field; use 0.")
         if self.reference.source == "mesh":
             bad = [p.kind for p in self.perturbations if p.realised_by == "remesh"]
             if bad:

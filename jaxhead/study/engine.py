@@ -36,12 +36,13 @@ from tqdm import tqdm
 from ..electrodes import Electrodes, place_electrodes
 from ..fem import build_forward_model, simulate
 from ..geometry import TetMesh, extract_surfaces, make_layers, tetrahedralize
-from ..io import atomic_write_path, load_labels, load_mesh, resample
+from ..io import atomic_write_path, load_labels, load_mesh, load_volume, resample
 from ..phantom import make_head
 from ..protocol import adjacent, opposite
+from ..segmentation import dice_scores, segment
 from ..tissue import TISSUE_NAMES, Tissue
-from ..volume import LabelMap
-from .config import ReferenceConfig, StudyConfig, load_study_config
+from ..volume import LabelMap, Volume
+from .config import ReferenceConfig, StudyConfig, load_study_config, segment_config
 from .first_order import (
     displacement_sensitivity,
     first_order_summary,
@@ -60,6 +61,7 @@ from .measures import (
 )
 from .morph import MorphError, build_morph, morph_nodes, morph_quality
 from .perturb import jitter_electrodes, perturb_labels
+from .resegmentation import reference_atlas, resegment
 
 logger = logging.getLogger(__name__)
 
@@ -67,7 +69,10 @@ logger = logging.getLogger(__name__)
 COLUMNS = ("sample", "perturbation", "tissue", "amplitude", "seed", "route", *MEASURE_COLUMNS,
            "seconds", "error", "correlation_mm", "n_inverted", "min_scaled_jacobian",
            "rel_voltage_change_first_order", "linearisation_error", "description",
-           "first_order_rel_error", "second_order_rel_error")
+           "first_order_rel_error", "second_order_rel_error",
+           "dice_brain", "dice_csf", "dice_skull", "dice_scalp", "bias_percent", "settings")
+#: The Dice columns: a re-mesh sample's label map against the reference label map, per tissue.
+DICE_COLUMNS = tuple(f"dice_{t}" for t in TISSUE_NAMES)
 
 #: The first-order vs sampled agreement (issue 13's bar), as summary.json states it.
 AGREEMENT_MEASURE = ("per sample e = ||dV - S d|| / ||dV||: dV = V(morphed head) - V(reference) "
@@ -106,22 +111,46 @@ def _x64():
 
 
 def prepare_reference(cfg: dict, ref_dir: str) -> str:
-    """Build and save the reference head (task). Returns the path of reference.npz."""
+    """Build and save the reference head (task). Returns the path of reference.npz.
+
+    With a segmented reference ([study.reference] segmented, or source = "scan") the label map is
+    `segment` of the scan with the reference's SegmentConfig; reference/segmentation.json then
+    gives the settings and, for a phantom, the Dice of that segmentation against the true labels.
+    """
     _x64()
     path = Path(ref_dir) / "reference.npz"
     if path.is_file():
         return str(path)
     rc = cfg["reference"]
+    rcfg = ReferenceConfig(**rc)
+    scan = None
     if rc["source"] == "mesh":  # no label map: the re-mesh route is unavailable (checked up front)
         mesh = load_mesh(rc["mesh_path"])
         labels = LabelMap(np.zeros((1, 1, 1), np.uint8), np.eye(4))
     else:
+        truth = None
         if rc["source"] == "phantom":
-            _, labels = make_head(rc["modality"], voxel_mm=rc["voxel_mm"], seed=rc["seed"])
+            scan, labels = truth = make_head(rc["modality"], voxel_mm=rc["voxel_mm"], seed=rc["seed"])
+        elif rc["source"] == "scan":
+            scan = load_volume(rc["scan_path"])
+            if rc["voxel_mm"] is not None:
+                scan = resample(scan, rc["voxel_mm"])
         else:
             labels = load_labels(rc["labels_path"])
             if rc["voxel_mm"] is not None:
                 labels = resample(labels, rc["voxel_mm"])
+        if rcfg.has_scan_labels:
+            scfg = rcfg.segment_config()
+            t0 = time.perf_counter()
+            labels = segment(scan, reference_atlas(scfg), scfg)
+            info = {"segment": rc["segment"], "seconds": round(time.perf_counter() - t0, 3),
+                    "voxels": {t: int((labels.labels == k + 1).sum())
+                               for k, t in enumerate(TISSUE_NAMES)}}
+            if truth is not None:
+                info["dice_vs_phantom_truth"] = dice_scores(labels, truth[1])
+            Path(ref_dir).mkdir(parents=True, exist_ok=True)
+            with atomic_write_path(Path(ref_dir) / "segmentation.json") as tmp:
+                tmp.write_text(json.dumps(info, indent=1))
         mesh = _mesh_of(labels)
     el = place_electrodes(mesh, rc["n_elec"], radius_mm=rc["electrode_radius_mm"],
                           contact_impedance_ohm_m2=rc["contact_impedance_ohm_m2"])
@@ -132,7 +161,8 @@ def prepare_reference(cfg: dict, ref_dir: str) -> str:
                      label_map=labels.labels, affine=labels.affine, centres=el.centres,
                      efaces=el.faces, face_electrode=el.face_electrode,
                      contact_impedance_ohm_m2=el.contact_impedance_ohm_m2, names=np.array(el.names),
-                     face_areas=el.face_areas_mm2)
+                     face_areas=el.face_areas_mm2,
+                     scan=np.asarray(scan.data) if scan is not None else np.zeros((0, 0, 0)))
     return str(path)
 
 
@@ -154,6 +184,13 @@ def load_reference(ref_path) -> tuple[LabelMap, TetMesh, Electrodes]:
     return labels, mesh, el
 
 
+def load_reference_scan(ref_path) -> Volume | None:
+    """The reference's scan (phantom or scan file, on the label map's grid), or None (no scan)."""
+    with np.load(ref_path) as d:
+        scan = d["scan"] if "scan" in d else np.zeros((0, 0, 0))
+        return Volume(scan, d["affine"]) if scan.size else None
+
+
 class _Worker:
     """What a worker process keeps of one reference: mesh, model, measures, morph, sensitivity."""
 
@@ -170,6 +207,8 @@ class _Worker:
             mc["blob_centre_mm"] = tuple(mc["blob_centre_mm"])
         self.ref = Reference(self.mesh, self.model, self.protocol, self.sigma, MeasureConfig(**mc))
         self._morph = None
+        self._atlas = None
+        self.ref_path = ref_path
         self.first_order_path = Path(ref_path).parent.parent / "first_order" / "sensitivity.npz"
 
     @property
@@ -177,6 +216,12 @@ class _Worker:
         if self._morph is None:
             self._morph = build_morph(self.mesh, stiffening=self.cfg["reference"]["stiffening"])
         return self._morph
+
+    @property
+    def atlas(self):
+        if self._atlas is None:
+            self._atlas = reference_atlas(ReferenceConfig(**self.cfg["reference"]).segment_config())
+        return self._atlas
 
     def sensitivity(self, tissue: str):
         if not self.first_order_path.is_file():
@@ -275,8 +320,9 @@ def run_sample(sample: dict, cfg: dict, ref_path: str, out_dir: str) -> dict:
     _x64()
     t0 = time.perf_counter()
     row = {c: "" for c in COLUMNS}
-    row.update({k: sample[k] for k in ("sample", "perturbation", "tissue", "amplitude", "seed",
-                                      "route", "correlation_mm")})
+    row.update({k: sample.get(k, "") for k in ("sample", "perturbation", "tissue", "amplitude",
+                                               "seed", "route", "correlation_mm", "bias_percent",
+                                               "settings")})
     extra = {}  # route diagnostics, kept when the sample fails (e.g. a morph's inverted tets)
     timings = {}  # seconds per step (samples/<id>.json only; benchmarks/study.py reads them)
     try:
@@ -349,8 +395,13 @@ def _measure_sample(w: _Worker, s: dict, extra: dict, timings: dict) -> dict:
             timings["second_order"] = round(time.perf_counter() - t2, 3)
             t += time.perf_counter() - t2  # the "forward" lap leaves it out
     elif route == "remesh":
-        labels, desc = perturb_labels(w.label_map, kind, tissue=s["tissue"] or None,
-                                      amplitude=s["amplitude"], seed=seed)
+        if kind == "resegment":
+            labels, desc = _resegment(w, s, seed)
+        else:
+            labels, desc = perturb_labels(w.label_map, kind, tissue=s["tissue"] or None,
+                                          amplitude=s["amplitude"], seed=seed)
+            desc["dice"] = dice_scores(labels, w.label_map)
+        extra.update({f"dice_{t}": desc["dice"][t] for t in TISSUE_NAMES})
         lap("perturb")
         mesh = _mesh_of(labels)
         lap("mesh")
@@ -377,6 +428,20 @@ def _measure_sample(w: _Worker, s: dict, extra: dict, timings: dict) -> dict:
     return {**m, **extra}
 
 
+def _resegment(w: _Worker, s: dict, seed: int):
+    """A resegment sample's labels: the reference scan, changed (seeded), segmented again."""
+    scan = load_reference_scan(w.ref_path)
+    if scan is None:  # guarded by StudyConfig; a reference saved without its scan lands here
+        raise ValueError("the reference has no scan to re-segment (source = \"labels\" or \"mesh\")")
+    settings = json.loads(s["settings"]) if s.get("settings") else {}
+    base = ReferenceConfig(**w.cfg["reference"]).segment_config()
+    scfg = segment_config(base.modality, settings, base=base, where="settings")
+    labels, desc = resegment(scan, w.label_map, s["amplitude"], atlas=w.atlas, cfg=scfg,
+                             bias_percent=float(s.get("bias_percent") or 0.0), seed=seed)
+    desc["settings"] = settings
+    return labels, desc
+
+
 # ----------------------------------------------------------------------------------------------
 # The driver
 
@@ -388,11 +453,14 @@ def expand_samples(cfg: StudyConfig) -> list[dict]:
         seeds = np.random.SeedSequence([int(cfg.seed), j]).generate_state(p.samples)
         for k in range(p.samples):
             tissue = p.tissue or ""
-            out.append({
-                "sample": f"{len(out):04d}-{p.kind}{'-' + tissue if tissue else ''}-{p.amplitude:g}-{k}",
-                "perturbation": p.kind, "tissue": tissue, "amplitude": float(p.amplitude),
-                "seed": int(seeds[k]), "route": p.realised_by,
-                "correlation_mm": float(p.correlation_mm) if p.kind == "grf" else ""})
+            s = {"sample": f"{len(out):04d}-{p.kind}{'-' + tissue if tissue else ''}-{p.amplitude:g}-{k}",
+                 "perturbation": p.kind, "tissue": tissue, "amplitude": float(p.amplitude),
+                 "seed": int(seeds[k]), "route": p.realised_by,
+                 "correlation_mm": float(p.correlation_mm) if p.kind == "grf" else ""}
+            if p.kind == "resegment":
+                s["bias_percent"] = float(p.bias_percent)
+                s["settings"] = json.dumps(p.settings, sort_keys=True) if p.settings else ""
+            out.append(s)
     return out
 
 
@@ -448,7 +516,8 @@ def run_study(config, *, workers: int | None = None, scheduler: str | None = Non
                 f"{out} holds a study of another reference head (its [study.reference] differs); "
                 "choose another out_dir or delete that folder.")
     rc = cfg.reference
-    src = {"labels": ("labels_path", rc.labels_path), "mesh": ("mesh_path", rc.mesh_path)}.get(rc.source)
+    src = {"labels": ("labels_path", rc.labels_path), "mesh": ("mesh_path", rc.mesh_path),
+           "scan": ("scan_path", rc.scan_path)}.get(rc.source)
     if src and not Path(src[1]).is_file():
         raise ValueError(f"[study.reference] {src[0]} = {src[1]!r} does not exist; pass the path "
                          "of the reference head's file (relative to where the study runs).")
@@ -561,16 +630,19 @@ def summarise(rows: list[dict], first_order: dict | None) -> dict:
     for grf groups the sampled-vs-first-order comparison."""
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
-        groups.setdefault((r["perturbation"], r["tissue"], _num(r["amplitude"]), r["route"]), []).append(r)
+        groups.setdefault((r["perturbation"], r["tissue"], _num(r["amplitude"]), r["route"],
+                           _num(r.get("bias_percent") or 0), r.get("settings") or ""), []).append(r)
     out = {"groups": []}
     agreement = {"measure": AGREEMENT_MEASURE, "bar": AGREEMENT_BAR,
                  "applies_to": f"grf samples (morph route) with sd <= {AGREEMENT_MAX_SD_MM} mm",
                  "groups": []}
     numeric = [*MEASURE_COLUMNS, "seconds", "min_scaled_jacobian",
-               "rel_voltage_change_first_order", "linearisation_error", "second_order_rel_error"]
-    for (kind, tissue, amp, route), rs in groups.items():
+               "rel_voltage_change_first_order", "linearisation_error", "second_order_rel_error",
+               *DICE_COLUMNS]
+    for (kind, tissue, amp, route, bias, settings), rs in groups.items():
         ok = [r for r in rs if not r.get("error")]
         g = {"perturbation": kind, "tissue": tissue, "amplitude": amp, "route": route,
+             **({"bias_percent": bias, "settings": settings} if kind == "resegment" else {}),
              "n": len(rs), "n_failed": len(rs) - len(ok),
              "errors": sorted({r["error"] for r in rs if r.get("error")})[:5], "measures": {}}
         for c in numeric:
@@ -675,13 +747,18 @@ def _figures(out: Path, rows: list[dict]):
     ok = [r for r in rows if not r.get("error")]
     if not ok:
         return
-    labels = sorted({f"{r['perturbation']} {r['tissue']} {r['amplitude']}" for r in ok})
+
+    def label(r):
+        extra = (f" bias {r['bias_percent']}" if _num(r.get("bias_percent") or 0) else "") + \
+            (f" {r['settings']}" if r.get("settings") else "")
+        return f"{r['perturbation']} {r['tissue']} {r['amplitude']}{extra}"
+
+    labels = sorted({label(r) for r in ok})
     cols = ["rel_voltage_change", "voltage_change_over_noise", "localisation_error_mm",
             "image_correlation", "sigma_bias_percent_skull", "sigma_bias_percent_brain"]
     fig, axes = plt.subplots(2, 3, figsize=(13, 7))
     for ax, c in zip(axes.ravel(), cols):
-        data = [[_num(r[c]) for r in ok if f"{r['perturbation']} {r['tissue']} {r['amplitude']}" == lab]
-                for lab in labels]
+        data = [[_num(r[c]) for r in ok if label(r) == lab] for lab in labels]
         data = [[v for v in d if np.isfinite(v)] or [np.nan] for d in data]
         ax.boxplot(data, showmeans=True)
         for i, d in enumerate(data):
