@@ -11,6 +11,7 @@ from jaxhead.io import save_mesh
 from jaxhead.study import (
     COLUMNS,
     expand_samples,
+    finished_samples,
     load_study_config,
     run_study,
     study_config_from_dict,
@@ -92,7 +93,8 @@ def test_outputs(study):
     assert [(x["tissue"], x["sd_mm"], x["n"]) for x in a["groups"]] == [("csf", 0.3, 2)]
     assert a["max"] == pytest.approx(g["first_order"]["per_sample_linearisation_error_max"])
     # second order per sample, and the distribution the first-order route predicts
-    assert list(COLUMNS[-2:]) == ["first_order_rel_error", "second_order_rel_error"]
+    i = COLUMNS.index("first_order_rel_error")
+    assert COLUMNS[i + 1] == "second_order_rel_error" and i > COLUMNS.index("description")
     e1 = np.array([float(r["first_order_rel_error"]) for r in grf])
     e2 = np.array([float(r["second_order_rel_error"]) for r in grf])
     np.testing.assert_array_equal(e1, [float(r["linearisation_error"]) for r in grf])
@@ -127,6 +129,56 @@ def test_rerun_runs_only_missing_samples(study):
     after = read(out)
     for a, b in zip(before, after):  # seeded: the rerun sample is the same sample
         assert a["rel_voltage_change"] == pytest.approx(b["rel_voltage_change"]) or a["error"]
+
+
+def test_a_changed_parameter_reruns_only_its_samples(study):
+    """Never stale: after an edit of one perturbation's parameter, a rerun runs that
+    perturbation's samples (and the first-order task) again and keeps the others' files."""
+    cfg, out = study
+    edited = cfg.with_name("edited.toml")
+    edited.write_text(cfg.read_text().replace("correlation_mm = 30.0", "correlation_mm = 25.0"))
+    files = sorted((out / "samples").glob("*.json"))
+    others = {f.name: f.stat().st_mtime_ns for f in files if "-grf-csf-" not in f.name}
+    assert len(others) == 2
+    run_study(edited, workers=1, progress=False)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["run"]["ran"] == 2 and s["run"]["stale_rerun"] == 2
+    assert s["run"]["skipped_finished"] == 2
+    assert {f.name: f.stat().st_mtime_ns for f in files if f.name in others} == others
+    rows = [r for r in read(out) if r["tissue"] == "csf"]
+    assert {float(r["correlation_mm"]) for r in rows} == {25.0}
+    fo = json.loads((out / "first_order" / "first_order.json").read_text())
+    assert {p["correlation_mm"] for p in fo["predictions"] if p["tissue"] == "csf"} == {25.0}
+
+
+def test_sample_keys_follow_what_a_sample_depends_on():
+    def keys(**kw):
+        d = {"seed": 1, "perturbations": [
+            {"kind": "grf", "tissue": "csf", "amplitude": 0.5, "samples": 2,
+             "correlation_mm": kw.pop("corr", 20.0)},
+            {"kind": "dilate", "tissue": "skull", "amplitude": 1, "samples": kw.pop("n", 1)}],
+            **kw}
+        return [s["key"] for s in expand_samples(study_config_from_dict(d))]
+
+    k = keys()
+    assert len(set(k)) == 3
+    assert keys(n=3)[:3] == k  # more samples: the finished ones stay valid
+    assert keys(corr=25.0)[:2] != k[:2] and keys(corr=25.0)[2] == k[2]
+    assert set(keys(measures={"noise_percent": 1.0})).isdisjoint(k)
+    assert set(keys(reference={"n_elec": 8})).isdisjoint(k)
+
+
+def test_finished_samples_reuses_only_matching_keys(tmp_path):
+    samples = [{"sample": f"000{i}", "key": f"k{i}"} for i in range(4)]
+    for i, (key, err) in enumerate([("k0", ""), ("old", ""), ("k2", "ValueError: x")]):
+        (tmp_path / f"000{i}.json").write_text(json.dumps({"sample": f"000{i}", "key": key,
+                                                           "error": err}))
+    done, stale = finished_samples(samples, tmp_path)
+    assert sorted(done) == ["0000", "0002"] and stale == 1
+    done, stale = finished_samples(samples, tmp_path, retry_failed=True)
+    assert sorted(done) == ["0000"] and stale == 1
+    (tmp_path / "0000.json").write_text(json.dumps({"sample": "0000"}))  # written with no key
+    assert "0000" not in finished_samples(samples, tmp_path)[0]
 
 
 def base(**pert):

@@ -12,6 +12,7 @@ from .engine import COLUMNS as COLUMNS
 from .engine import DICE_COLUMNS as DICE_COLUMNS
 from .engine import connect as connect
 from .engine import expand_samples as expand_samples
+from .engine import finished_samples as finished_samples
 from .engine import load_reference as load_reference
 from .engine import load_reference_scan as load_reference_scan
 from .engine import prepare_reference as prepare_reference

@@ -327,6 +327,28 @@ class StudyConfig:
         s = json.dumps(dataclasses.asdict(self.reference), sort_keys=True)
         return hashlib.sha256(s.encode()).hexdigest()[:16]
 
+    def sample_key(self, j: int, k: int, seed: int) -> str:
+        """A hash of everything sample k of perturbation j depends on: its perturbation's
+        parameters (not its sample count), its seed, the reference head and the measures. A rerun
+        reuses a finished sample only when its stored key is this one, so a result is never
+        stale after a parameter changes."""
+        p = {f: v for f, v in dataclasses.asdict(self.perturbations[j]).items() if f != "samples"}
+        s = json.dumps({"perturbation": p, "k": int(k), "seed": int(seed),
+                        "reference": dataclasses.asdict(self.reference),
+                        "measures": dataclasses.asdict(self.measures)},
+                       sort_keys=True, default=str)
+        return hashlib.sha256(s.encode()).hexdigest()[:16]
+
+    def first_order_key(self) -> str:
+        """A hash of what the first-order task depends on: the reference, the measures and the
+        grf perturbations' tissues, sds and correlation lengths."""
+        grf = sorted((p.tissue, float(p.amplitude), float(p.correlation_mm))
+                     for p in self.perturbations if p.kind == "grf")
+        s = json.dumps({"grf": grf, "reference": dataclasses.asdict(self.reference),
+                        "measures": dataclasses.asdict(self.measures)},
+                       sort_keys=True, default=str)
+        return hashlib.sha256(s.encode()).hexdigest()[:16]
+
 
 def _build(cls, data: dict, where: str):
     if not isinstance(data, dict):

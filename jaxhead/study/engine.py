@@ -322,7 +322,7 @@ def run_sample(sample: dict, cfg: dict, ref_path: str, out_dir: str) -> dict:
     row = {c: "" for c in COLUMNS}
     row.update({k: sample.get(k, "") for k in ("sample", "perturbation", "tissue", "amplitude",
                                                "seed", "route", "correlation_mm", "bias_percent",
-                                               "settings")})
+                                               "settings", "key")})
     extra = {}  # route diagnostics, kept when the sample fails (e.g. a morph's inverted tets)
     timings = {}  # seconds per step (samples/<id>.json only; benchmarks/study.py reads them)
     try:
@@ -456,7 +456,8 @@ def expand_samples(cfg: StudyConfig) -> list[dict]:
             s = {"sample": f"{len(out):04d}-{p.kind}{'-' + tissue if tissue else ''}-{p.amplitude:g}-{k}",
                  "perturbation": p.kind, "tissue": tissue, "amplitude": float(p.amplitude),
                  "seed": int(seeds[k]), "route": p.realised_by,
-                 "correlation_mm": float(p.correlation_mm) if p.kind == "grf" else ""}
+                 "correlation_mm": float(p.correlation_mm) if p.kind == "grf" else "",
+                 "key": cfg.sample_key(j, k, seeds[k])}
             if p.kind == "resegment":
                 s["bias_percent"] = float(p.bias_percent)
                 s["settings"] = json.dumps(p.settings, sort_keys=True) if p.settings else ""
@@ -529,15 +530,11 @@ def run_study(config, *, workers: int | None = None, scheduler: str | None = Non
                                        "config": cfg.to_dict()}, indent=1, default=str))
         cfgd = json.loads(json.dumps(cfg.to_dict(), default=list))
         samples = expand_samples(cfg)
-        done = {}
-        for s in samples:
-            p = out / "samples" / f"{s['sample']}.json"
-            if p.is_file():
-                row = json.loads(p.read_text())
-                if not (cfg.retry_failed and row.get("error")):
-                    done[s["sample"]] = row
+        done, stale = finished_samples(samples, out / "samples", retry_failed=cfg.retry_failed)
         todo = [s for s in samples if s["sample"] not in done]
-        logger.info("study %s: %d samples, %d already done", cfg.name, len(samples), len(done))
+        logger.info("study %s: %d samples, %d already done, %d stale (their parameters, the "
+                    "measures or the reference changed) run again", cfg.name, len(samples),
+                    len(done), stale)
         t_start = time.perf_counter()
         ref_path = client.submit(prepare_reference, cfgd, str(out / "reference"),
                                  pure=False).result()
@@ -549,7 +546,9 @@ def run_study(config, *, workers: int | None = None, scheduler: str | None = Non
         # re-mesh and electrode samples run beside it on the other workers.
         fo_future, fo_error = None, None
         futures = []
-        if need_fo and not fo_path.is_file():
+        fo_key = cfg.first_order_key()
+        if need_fo and (not fo_path.is_file()
+                        or json.loads(fo_path.read_text()).get("key") != fo_key):
             fo_future = client.submit(run_first_order, cfgd, ref_path, str(out), pure=False,
                                       priority=10)
             futures.append(fo_future)
@@ -570,7 +569,7 @@ def run_study(config, *, workers: int | None = None, scheduler: str | None = Non
                     logger.warning("first-order task failed: %s", fo_error)
                 else:
                     with atomic_write_path(fo_path) as tmp:
-                        tmp.write_text(json.dumps(res, indent=1))
+                        tmp.write_text(json.dumps({**res, "key": fo_key}, indent=1))
                 for s in morph_todo:
                     ac.add(client.submit(run_sample, s, cfgd, ref_path, str(out), pure=False))
                 continue
@@ -588,16 +587,41 @@ def run_study(config, *, workers: int | None = None, scheduler: str | None = Non
     ordered = [rows[s["sample"]] for s in samples]
     _write_csv(out / "samples.csv", ordered)
     fo = json.loads(fo_path.read_text()) if fo_path.is_file() else None
+    if fo is not None and fo.get("key") != fo_key:
+        fo = None  # stale, and its recomputation failed (summary.json's first_order_error)
     summary = summarise(ordered, fo)
     if fo_error:
         summary["first_order_error"] = fo_error
     summary["run"] = {"samples": len(samples), "skipped_finished": len(done),
+                      "stale_rerun": stale,
                       "ran": len(todo), "wall_seconds": wall,
                       "workers": workers, "scheduler": scheduler}
     with atomic_write_path(out / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
     _figures(out, ordered)
     return out
+
+
+def finished_samples(samples: list[dict], folder: Path, *, retry_failed: bool = False
+                     ) -> tuple[dict[str, dict], int]:
+    """The samples a rerun can reuse: ({id: row}, number of stale files).
+
+    A sample file is reused only when its stored `key` equals the expanded sample's
+    (`StudyConfig.sample_key`); a file written under other parameters, measures or reference
+    (or by a version that stored no key) is stale and its sample runs again. With
+    `retry_failed`, failed samples run again too.
+    """
+    done, stale = {}, 0
+    for s in samples:
+        p = Path(folder) / f"{s['sample']}.json"
+        if not p.is_file():
+            continue
+        row = json.loads(p.read_text())
+        if row.get("key") != s["key"]:
+            stale += 1
+        elif not (retry_failed and row.get("error")):
+            done[s["sample"]] = row
+    return done, stale
 
 
 def _bar(progress, total, initial):
