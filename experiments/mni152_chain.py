@@ -168,9 +168,20 @@ def summary(cfg, truth_path: str) -> list[str]:
         out += ["", f"Tet-centroid label agreement: {centroid_agreement(mesh, layers):.4f} with the layered map, "
                 f"{centroid_agreement(mesh, truth):.4f} with the true labels. Nesting violations (faces between "
                 f"tissues that are not neighbours, outer faces not scalp): {nesting_violations(mesh)}."]
-    for stage in ("forward", "inverse"):
-        if done.get(stage):
-            out += ["", f"{stage}: `{json.dumps(done[stage]['summary'], default=str)[:1500]}`"]
+    if done.get("forward"):
+        f = done["forward"]["summary"]
+        out += ["", f"Forward: {f['n_elec']} electrodes, {f['n_rows']} measurements, voltages "
+                f"{1e3 * f['volts_min']:.2f} to {1e3 * f['volts_max']:.2f} mV."]
+    if done.get("inverse"):
+        v = done["inverse"]["summary"]
+        if "localisation_error_mm" in v:
+            out.append(f"Inverse ({v['method']}, truncation {v['k']:g} by {v['rule']}, {v['n_cells']} cells): "
+                       f"localisation error {v['localisation_error_mm']:.1f} mm, blob diameter {v['diameter_mm']:.0f} mm, "
+                       f"volume ratio {v['volume_ratio']:.1f}.")
+        if "fit_rel_error" in v:
+            out.append("Fit of the four conductivities (relative error brain / CSF / skull / scalp): "
+                       + " / ".join(f"{100 * e:+.2f} %" for e in v["fit_rel_error"])
+                       + f", {v['fit_n_forward']} forward solves, converged {v['fit_converged']}.")
     return out
 
 
