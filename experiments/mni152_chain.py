@@ -16,11 +16,13 @@
    agreement, and the forward / inverse summaries. `--markdown PATH` also writes them as Markdown.
 
 The default atlas ("mni152") is built from this same anatomy (blurred priors, noise-free template),
-so the segmentation here is not held out: its Dice is an upper bound (held-out figures:
-experiments/results/segmentation_heldout*.md).
+so the segmentation here is not held out: its Dice is an upper bound. `--heldout` instead segments
+the scan with an atlas of the ANTs 19.5-year head (never this anatomy) and runs the chain from those
+labels (layers .. inverse) in <out_dir>_ants_atlas. Results: experiments/results/mni152_chain.md.
 
     flock /tmp/jaxhead-cpu.lock env PYTHONPATH=$PWD OPENBLAS_NUM_THREADS=1 \\
-        python experiments/mni152_chain.py --until segment     # then layers, surfaces, mesh, inverse
+        python experiments/mni152_chain.py --until segment     # then surfaces, quality, (all)
+    ... python experiments/mni152_chain.py --heldout --until quality   # then --heldout (all)
     python experiments/mni152_chain.py --summary-only --markdown experiments/results/mni152_chain.md
 """
 
