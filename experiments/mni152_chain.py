@@ -23,7 +23,7 @@ labels (layers .. inverse) in <out_dir>_ants_atlas. Results: experiments/results
     flock /tmp/jaxhead-cpu.lock env PYTHONPATH=$PWD OPENBLAS_NUM_THREADS=1 \\
         python experiments/mni152_chain.py --until segment     # then surfaces, quality, (all)
     ... python experiments/mni152_chain.py --heldout --until quality   # then --heldout (all)
-    python experiments/mni152_chain.py --summary-only --markdown experiments/results/mni152_chain.md
+    python experiments/mni152_chain.py [--heldout] --summary-only --markdown /tmp/figures.md  # figures only
 """
 
 from __future__ import annotations
