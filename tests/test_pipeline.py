@@ -16,12 +16,15 @@ import textwrap
 import time
 
 import pytest
+from sphere_mesh import structured_sphere_mesh
 
+from jaxhead import io
 from jaxhead.run import RunLockedError, StageError, stage
 from jaxhead.run import pipeline as pipeline_module
 from jaxhead.run.config import InputConfig, InverseConfig, RunConfig
 from jaxhead.run.lock import run_lock
 from jaxhead.run.pipeline import run_pipeline
+from jaxhead.run.stages import run_quality
 
 
 def _fake_stages(calls, *, random_mesh=False):
@@ -369,3 +372,20 @@ def test_what_the_library_logs_is_kept_in_the_stage_folder(tmp_path):
     done = json.loads((tmp_path / "run/mri/input/done.json").read_text())
     assert "log.txt" in done["outputs"]
     assert logging.getLogger("jaxhead").level == logging.NOTSET  # restored
+
+
+def test_quality_stage_names_the_histograms_it_leaves(tmp_path):
+    # The stage writes into a staging folder renamed on success; table2.txt and report.json
+    # named the staging folder's PNGs (gone after the rename) until they named them relative
+    # to the quality folder.
+    @stage(config=("mesh",))
+    def run_mesh(cfg, subject):
+        io.save_mesh(structured_sphere_mesh(h_mm=18.0), subject.dir("mesh") / "mesh.vtu")
+        return {}
+
+    _run(_cfg(tmp_path), {"mesh": run_mesh, "quality": run_quality})
+    folder = tmp_path / "run/mri/quality"
+    named = json.loads((folder / "report.json").read_text())["png_paths"]
+    assert len(named) == 7 and all((folder / p).is_file() for p in named), named
+    table = (folder / "table2.txt").read_text()
+    assert "Histograms: " + ", ".join(named) in table and ".tmp" not in table

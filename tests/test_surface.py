@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 import trimesh
 
+from jaxhead.geometry import surface as surface_module
 from jaxhead.geometry.layers import make_layers
 from jaxhead.geometry.surface import (
-    Surface, SurfaceConfig, _tri_tri_intersect, check_surface, edge_lengths, extract_surfaces,
-    extract_surfaces_reported, self_intersections, surface_area_mm2, surface_gap_mm,
-    surface_volume_mm3, to_trimesh)
+    Surface, SurfaceConfig, _tri_tri_intersect, check_surface, edge_lengths, euler_number,
+    extract_surfaces, extract_surfaces_reported, self_intersections, surface_area_mm2,
+    surface_gap_mm, surface_volume_mm3, to_trimesh)
 from jaxhead.tissue import TISSUES, Tissue
 from jaxhead.volume import LabelMap, default_affine
 
@@ -340,3 +341,31 @@ def test_phantom_head(voxel_mm):
     # the phantom's ventricles are CSF inside the brain: filled into the brain and counted
     assert lrep.ventricle_voxels > 0
     assert lrep.changes["ventricles"] == {(Tissue.CSF, Tissue.BRAIN): lrep.ventricle_voxels}
+
+
+#: A 9-voxel box of the layered CSF solid of the MNI152-based head at 1 mm segmented with the
+#: ANTs atlas (experiments/mni152_chain.py --heldout), around the place where the CSF surface got
+#: a handle: a one-voxel skull spike into the CSF. np.packbits of the (9, 9, 9) bool mask.
+HANDLE_BOX = bytes.fromhex(
+    "000000000000000100fc0000000000000100ee7fc00000000000008c7e3fe000000000001c647ffff0000000003c"
+    "0fbffffff80000007820bffffffffc0000383dfffffffffffe80345e3fffffffffffff6073fdffffffffffffff80")
+
+
+def test_marching_cubes_prefers_the_presmoothing_whose_surface_is_a_sphere():
+    box = np.unpackbits(np.frombuffer(HANDLE_BOX, np.uint8))[:729].reshape(9, 9, 9).astype(bool)
+    pad = np.pad(box, 3)
+    _, F = surface_module._marching_cubes(pad, np.eye(4), 0.5)
+    assert euler_number(F) == 0  # the configured presmoothing's level set has a handle
+    V, F, sigma = surface_module._sphere_marching_cubes(pad, np.eye(4), 0.5, Tissue.CSF)
+    assert euler_number(F) == 2 and sigma == 0.75
+    # a ball keeps the configured sigma; a thick voxel torus (no sphere at any sigma) keeps its
+    # own surface and the configured sigma
+    g = np.arange(-12, 13)
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    ball = X**2 + Y**2 + Z**2 <= 64
+    _, F, sigma = surface_module._sphere_marching_cubes(ball, np.eye(4), 0.5, Tissue.BRAIN)
+    assert euler_number(F) == 2 and sigma == 0.5
+    torus = (np.hypot(X, Y) - 7) ** 2 + Z**2 <= 9
+    _, F, sigma = surface_module._sphere_marching_cubes(torus, np.eye(4), 0.5, Tissue.BRAIN)
+    assert euler_number(F) == 0 and sigma == 0.5
+    assert euler_number(trimesh.creation.icosphere(2).faces) == 2

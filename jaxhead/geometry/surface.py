@@ -210,13 +210,15 @@ class SurfaceStats:
     untangled_vertices: int = 0
     remesh_retries: int = 0
     gap_rounds: int = 1
+    presmooth_sigma_voxels: float | None = None
+    presmooth_raised: bool = False
 
     @property
     def n_repairs(self) -> int:
         """Components dropped + holes filled + faces flipped + self-intersections untangled +
-        remesh retries."""
+        remesh retries + 1 if the presmoothing had to be raised."""
         return (self.components_dropped + self.hole_faces_added + self.faces_flipped
-                + self.untangled_pairs + self.remesh_retries)
+                + self.untangled_pairs + self.remesh_retries + int(self.presmooth_raised))
 
 
 @dataclass(frozen=True)
@@ -258,6 +260,9 @@ class SurfaceReport:
                 f"untangled: {s.untangled_pairs} face pairs ({s.untangle_rounds} rounds, "
                 f"{s.untangled_vertices} vertices smoothed, {s.remesh_retries} finer remeshes); "
                 f"left: {'-' if s.self_intersections is None else s.self_intersections}")
+            if s.presmooth_raised:
+                lines.append(f"         presmoothing raised to {s.presmooth_sigma_voxels:g} voxels: the "
+                             "configured one's level set was not a sphere")
         return "\n".join(lines)
 
 
@@ -621,6 +626,42 @@ def _marching_cubes(mask: np.ndarray, affine: np.ndarray, sigma: float) -> tuple
     return xyz, faces.astype(np.int64)
 
 
+#: Presmoothing factors tried, in order, until the marching-cubes surface is a sphere.
+_PRESMOOTH_FACTORS = (1.0, 1.5, 2.0)
+
+
+def euler_number(faces: np.ndarray) -> int:
+    """Euler characteristic V - E + F of a triangle surface (2 for a sphere, 0 for a torus)."""
+    F = np.asarray(faces, np.int64)
+    n = int(F.max()) + 1 if F.size else 0
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [0, 2]]]), axis=1)
+    return len(np.unique(F)) - len(_uniq(e[:, 0] * n + e[:, 1])) + len(F)
+
+
+def _sphere_marching_cubes(mask: np.ndarray, affine: np.ndarray, sigma: float,
+                           tissue: Tissue) -> tuple[np.ndarray, np.ndarray, float]:
+    """Marching cubes of the presmoothed solid, whose surface must be a sphere: (V, F, sigma used).
+
+    `make_layers` makes each solid genus 0 under both voxel-connectivity conventions, but the
+    0.5 level set of the Gaussian-smoothed mask can still join two parts of the solid that lie
+    one empty voxel apart (seen on a segmented MNI152 head at 1 mm: a one-voxel skull spike into
+    the CSF gave the CSF surface a handle, and the mesh 8 slivers there). Stronger smoothing
+    blurs such a one-voxel feature away, so sigma x 1.5 and x 2 are tried in turn; the first
+    sphere is kept (logged, and reported by `extract_surfaces_reported`). If none is a sphere
+    (a solid with tunnels, `LayerConfig(tunnels="keep")`), the configured sigma's surface is kept.
+    """
+    first = None
+    for factor in _PRESMOOTH_FACTORS if sigma > 0 else (1.0,):
+        V, F = _marching_cubes(mask, affine, sigma * factor)
+        if euler_number(F) == 2:
+            if factor != 1.0:
+                log.info("%s surface: the level set at presmoothing %g voxels was not a sphere; "
+                         "used %g voxels", tissue.name, sigma, sigma * factor)
+            return V, F, sigma * factor
+        first = first or (V, F)
+    return first[0], first[1], sigma
+
+
 def _face_components(F: np.ndarray, n_verts: int) -> tuple[int, np.ndarray]:
     """Connected components of faces through shared edges: (count, label per face)."""
     a, b = F.ravel().astype(np.int64), F[:, [1, 2, 0]].ravel().astype(np.int64)
@@ -885,7 +926,7 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
         mask, n_cavity = masks[t]
         sec = {}
         t0 = time.perf_counter()
-        V, F = _marching_cubes(mask, layers.affine, cfg.presmooth_sigma_voxels)
+        V, F, sigma = _sphere_marching_cubes(mask, layers.affine, cfg.presmooth_sigma_voxels, t)
         if surface_volume_mm3(Surface(V, F, t)) < 0:  # winding convention (and det(affine) < 0)
             F = F[:, ::-1].copy()
         n_mc = len(F)
@@ -919,7 +960,7 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
         info[t] = dict(solid_voxels=int(mask.sum()), cavity_voxels=n_cavity,
                        voxel_volume_mm3=float(mask.sum()) * vox_vol, mc_faces=n_mc,
                        **{k: rep1[k] + rep2[k] for k in rep1}, sec=sec, remesh_retries=retries,
-                       **unt)
+                       presmooth_sigma_voxels=sigma, **unt)
 
     # Gap, outside in: only the inner surface of each pair moves (inward).
     gaps: dict[Tissue, float | None] = {Tissue.SCALP: None}
@@ -985,7 +1026,9 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
             gap_to_outer_mm=gaps[t], self_intersections=chk.self_intersections,
             seconds=dict(d["sec"]), untangled_pairs=d["untangled_pairs"],
             untangle_rounds=d["untangle_rounds"], untangled_vertices=d["untangled_vertices"],
-            remesh_retries=d["remesh_retries"], gap_rounds=d.get("gap_rounds", 1))
+            remesh_retries=d["remesh_retries"], gap_rounds=d.get("gap_rounds", 1),
+            presmooth_sigma_voxels=d["presmooth_sigma_voxels"],
+            presmooth_raised=d["presmooth_sigma_voxels"] != cfg.presmooth_sigma_voxels)
     report = SurfaceReport(stats=stats, min_gap_mm=cfg.min_gap_mm,
                            seconds=time.perf_counter() - t_start)
     return surfaces, report

@@ -270,6 +270,8 @@ def run_quality(cfg: RunConfig, subject: Subject) -> dict:
     mesh = io.load_mesh(subject.file("mesh", "mesh.vtu"))
     out = subject.dir("quality")
     report = quality_report(mesh, png_dir=out)
+    # name the histograms relative to this folder: `out` is a staging folder renamed on success
+    report = dataclasses.replace(report, png_paths=tuple(Path(p).name for p in report.png_paths))
     _write_text(out / "table2.txt", report.table())
     _write_text(out / "report.json", json.dumps(report.to_dict(), indent=2))
     return {"table2": report.table2_row}
