@@ -1,10 +1,11 @@
 """Atomic file writes and content digests, used by every writer in jaxhead.  [host]"""
 
 import contextlib
+import csv
 import hashlib
 import os
 import secrets
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 
@@ -52,6 +53,16 @@ def atomic_write_path(path: str | os.PathLike, *, fsync: bool = True) -> Iterato
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+
+
+def write_csv(path: str | os.PathLike, columns, rows: Iterable[dict]) -> None:
+    """A CSV table written atomically: a header of `columns`, then one line per row dict
+    (keys not in `columns` are left out, missing ones are empty)."""
+    with atomic_write_path(path) as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
+            w.writeheader()
+            w.writerows(rows)
 
 
 def file_digest(path: str | os.PathLike) -> str:

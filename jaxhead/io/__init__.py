@@ -6,6 +6,7 @@ final name.
 """
 
 from .._files import atomic_write_path as atomic_write_path
+from .._files import write_csv as write_csv
 from .._files import file_digest as file_digest
 from .mesh import MESH_EXTENSIONS as MESH_EXTENSIONS
 from .mesh import SURFACE_EXTENSIONS as SURFACE_EXTENSIONS
@@ -31,7 +32,7 @@ from .volume import save_labels as save_labels
 from .volume import save_volume as save_volume
 
 __all__ = [
-    "MEASUREMENT_FORMATS", "MESH_EXTENSIONS", "Measurements", "SIMNIBS_TISSUE_MAP", "SURFACE_EXTENSIONS", "TISSUE_SYNONYMS", "VOLUME_EXTENSIONS", "atomic_write_path",
+    "MEASUREMENT_FORMATS", "MESH_EXTENSIONS", "Measurements", "SIMNIBS_TISSUE_MAP", "SURFACE_EXTENSIONS", "TISSUE_SYNONYMS", "VOLUME_EXTENSIONS", "atomic_write_path", "write_csv",
     "file_digest", "format_info", "head_facing", "info", "load_labels", "load_measurements", "load_mesh", "load_surface",
     "load_volume", "mat73_arrays", "resample", "save_labels", "save_measurements", "save_mesh", "save_surface", "save_volume",
 ]

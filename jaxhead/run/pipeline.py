@@ -15,7 +15,6 @@ at a time works in a run folder (`lock.py`).
 """
 
 import contextlib
-import csv
 import dataclasses
 import datetime
 import enum
@@ -36,7 +35,7 @@ import jax
 from distributed import as_completed
 from tqdm import tqdm
 
-from .._files import atomic_write_path, file_digest
+from .._files import atomic_write_path, file_digest, write_csv
 from ..io import VOLUME_EXTENSIONS
 from ..study import connect
 from .config import RunConfig, is_pattern
@@ -455,7 +454,8 @@ def run_pipeline(cfg: RunConfig, *, force: bool = False, stages: dict[str, Stage
                 results = {n: r["stages"] | ({"error": r["error"]} if r["error"] else {})
                            for n, r in rows.items()}
                 _write_json(run_dir / "summary.json", results)
-                _write_subjects_csv(run_dir / SUBJECTS_CSV, rows.values())
+                write_csv(run_dir / SUBJECTS_CSV, SUBJECT_COLUMNS,
+                          [r | {"seconds": f"{r['seconds']:.1f}"} for r in rows.values()])
             if report:
                 try:
                     path = write_report(cfg, stages=list(stages))
@@ -477,15 +477,6 @@ def run_pipeline(cfg: RunConfig, *, force: bool = False, stages: dict[str, Stage
 SUBJECTS_CSV = "subjects.csv"
 #: subjects.csv columns: the cohort table (n_tets when the run meshed the subject).
 SUBJECT_COLUMNS = ("subject", "path", "status", "seconds", "n_tets", "error")
-
-
-def _write_subjects_csv(path: Path, rows) -> None:
-    with atomic_write_path(path) as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(SUBJECT_COLUMNS), extrasaction="ignore")
-            w.writeheader()
-            for r in rows:
-                w.writerow(r | {"seconds": f"{r['seconds']:.1f}"})
 
 
 def _error_text(e: BaseException, subject: str) -> str:

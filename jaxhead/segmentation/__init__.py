@@ -24,6 +24,7 @@ from .segment import (
     check_orientation,
     check_registration,
     classify,
+    config_atlas,
     dice_scores,
     register_atlas,
     registration_summary,
@@ -34,7 +35,7 @@ from .templates import Anatomy, ants_anatomy, mni152_anatomy, rasterise, read_jn
 
 __all__ = [
     "AffineTransform", "Anatomy", "Atlas", "anatomy_atlas", "ants_anatomy", "check_label_map", "check_orientation",
-    "check_registration", "dice_scores", "mni152_anatomy", "rasterise", "read_jnifti", "registration_summary",
+    "check_registration", "config_atlas", "dice_scores", "mni152_anatomy", "rasterise", "read_jnifti", "registration_summary",
     "render", "BSplineTransform", "EMOptions", "EMResult", "MixtureParams",
     "RegisterConfig", "SegmentConfig", "Segmentation", "affine_register", "bspline_register",
     "build_atlas", "cache_dir", "classify", "default_atlas", "fit_mixture", "infer_posteriors", "mean_field",

@@ -566,8 +566,7 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
     _check_inputs(volume, atlas, cfg)
     _dtype(cfg)
     if atlas is None:
-        atlas = default_atlas(cfg.modality, atlas=cfg.atlas, voxel_mm=cfg.atlas_voxel_mm,
-                              n_subjects=cfg.atlas_subjects)
+        atlas = config_atlas(cfg)
     t0 = time.perf_counter()
     orientation = check_orientation(volume, atlas) if cfg.check_registration else {}
     transform, priors = register_atlas(volume, atlas, cfg)
@@ -596,6 +595,13 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
         bias_field=bias, n_iter=int(res.n_iter), converged=bool(res.converged), atlas_name=atlas.name,
         registration=summary,
     )
+
+
+def config_atlas(cfg: SegmentConfig) -> Atlas:
+    """The atlas `segment` uses with `cfg` when given none: `default_atlas` of its modality,
+    `atlas`, `atlas_voxel_mm` and `atlas_subjects` (built once, then cached on disk)."""
+    return default_atlas(cfg.modality, atlas=cfg.atlas, voxel_mm=cfg.atlas_voxel_mm,
+                         n_subjects=cfg.atlas_subjects)
 
 
 def segment(volume: Volume, atlas: Atlas | None = None, cfg: SegmentConfig = SegmentConfig()) -> LabelMap:

@@ -52,7 +52,6 @@ from .perturb import scale_thickness as scale_thickness
 from .perturb import skull_close as skull_close
 from .perturb import skull_hole as skull_hole
 from .resegmentation import perturb_scan as perturb_scan
-from .resegmentation import reference_atlas as reference_atlas
 from .resegmentation import resegment as resegment
 from .resegmentation import robust_range as robust_range
 

@@ -18,7 +18,6 @@ keeps them (a per-process cache keyed by the reference folder).
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -36,10 +35,10 @@ from tqdm import tqdm
 from ..electrodes import Electrodes, place_electrodes
 from ..fem import build_forward_model, simulate
 from ..geometry import TetMesh, extract_surfaces, make_layers, tetrahedralize
-from ..io import atomic_write_path, load_labels, load_mesh, load_volume, resample
+from ..io import atomic_write_path, load_labels, load_mesh, load_volume, resample, write_csv
 from ..phantom import make_head
 from ..protocol import adjacent, opposite
-from ..segmentation import dice_scores, segment
+from ..segmentation import config_atlas, dice_scores, segment
 from ..tissue import TISSUE_NAMES, Tissue
 from ..volume import LabelMap, Volume
 from .config import ReferenceConfig, StudyConfig, load_study_config, segment_config
@@ -61,7 +60,7 @@ from .measures import (
 )
 from .morph import MorphError, build_morph, morph_nodes, morph_quality
 from .perturb import jitter_electrodes, perturb_labels
-from .resegmentation import reference_atlas, resegment
+from .resegmentation import resegment
 
 logger = logging.getLogger(__name__)
 
@@ -142,7 +141,7 @@ def prepare_reference(cfg: dict, ref_dir: str) -> str:
         if rcfg.has_scan_labels:
             scfg = rcfg.segment_config()
             t0 = time.perf_counter()
-            labels = segment(scan, reference_atlas(scfg), scfg)
+            labels = segment(scan, config_atlas(scfg), scfg)
             info = {"segment": rc["segment"], "seconds": round(time.perf_counter() - t0, 3),
                     "voxels": {t: int((labels.labels == k + 1).sum())
                                for k, t in enumerate(TISSUE_NAMES)}}
@@ -220,7 +219,7 @@ class _Worker:
     @property
     def atlas(self):
         if self._atlas is None:
-            self._atlas = reference_atlas(ReferenceConfig(**self.cfg["reference"]).segment_config())
+            self._atlas = config_atlas(ReferenceConfig(**self.cfg["reference"]).segment_config())
         return self._atlas
 
     def sensitivity(self, tissue: str):
@@ -585,7 +584,7 @@ def run_study(config, *, workers: int | None = None, scheduler: str | None = Non
         if cluster is not None:
             cluster.close()
     ordered = [rows[s["sample"]] for s in samples]
-    _write_csv(out / "samples.csv", ordered)
+    write_csv(out / "samples.csv", COLUMNS, ordered)
     fo = json.loads(fo_path.read_text()) if fo_path.is_file() else None
     if fo is not None and fo.get("key") != fo_key:
         fo = None  # stale, and its recomputation failed (summary.json's first_order_error)
@@ -630,15 +629,6 @@ def _bar(progress, total, initial):
     if not progress:
         return None
     return tqdm(total=total, initial=initial, desc="samples", unit="sample")
-
-
-def _write_csv(path: Path, rows: list[dict]):
-    with atomic_write_path(path) as tmp:
-        with open(tmp, "w", newline="") as f:
-            wr = csv.DictWriter(f, fieldnames=list(COLUMNS), extrasaction="ignore")
-            wr.writeheader()
-            for r in rows:
-                wr.writerow(r)
 
 
 def _num(x):

@@ -28,7 +28,7 @@ import itertools
 
 import numpy as np
 
-from ..segmentation import Atlas, SegmentConfig, default_atlas, dice_scores, segment
+from ..segmentation import Atlas, SegmentConfig, dice_scores, segment
 from ..volume import LabelMap, Volume
 
 def robust_range(volume: Volume) -> float:
@@ -112,8 +112,3 @@ def resegment(volume: Volume, reference: LabelMap, amplitude: float, *, atlas: A
             "dice": {k: round(v, 6) for k, v in dice.items()}}
     return labels, desc
 
-
-def reference_atlas(cfg: SegmentConfig) -> Atlas:
-    """The atlas `segment` uses with `cfg` when given none (`default_atlas`, cached on disk)."""
-    return default_atlas(cfg.modality, atlas=cfg.atlas, voxel_mm=cfg.atlas_voxel_mm,
-                         n_subjects=cfg.atlas_subjects)
