@@ -17,7 +17,7 @@ ROOT = pathlib.Path(jaxhead.__file__).parent
 
 #: Floors, bottom first: types and files, then the stages in pipeline order, then runs, then the CLI.
 FLOORS = [
-    {"_types", "_files", "tissue"},
+    {"_types", "_files", "_tables", "tissue"},
     {"volume"},
     {"phantom"},
     {"segmentation"},

@@ -140,9 +140,9 @@ def test_segment_config_register_table_and_errors():
     c = segment_config("ct", {"register": {"bspline": False, "affine_resolutions_mm": [8.0]}})
     assert c.modality == "ct" and c.register == dataclasses.replace(
         RegisterConfig(), bspline=False, affine_resolutions_mm=(8.0,))
-    with pytest.raises(ValueError, match="unknown SegmentConfig key 'betta'.*did you mean 'beta'"):
+    with pytest.raises(ValueError, match=r"unknown key `betta` in \[settings\]. Did you mean `beta`"):
         segment_config("mri", {"betta": 0.1})
-    with pytest.raises(ValueError, match="register has unknown key 'bsplin'.*'bspline'"):
+    with pytest.raises(ValueError, match=r"unknown key `bsplin` in \[settings.register\]. Did you mean `bspline`"):
         segment_config("mri", {"register": {"bsplin": False}})
     with pytest.raises(ValueError, match="`modality`"):
         segment_config("mri", {"modality": "ct"})
@@ -161,8 +161,9 @@ def cfg_dict(ref=None, **pert):
 
 @pytest.mark.parametrize("ref, pert, match", [
     ({}, {"amplitude": -1.0}, "amplitude = -1.0 for kind 'resegment'.*>= 0"),
-    ({}, {"settings": {"betta": 0.2}}, "unknown SegmentConfig key 'betta'.*did you mean 'beta'"),
+    ({}, {"settings": {"betta": 0.2}}, r"unknown key `betta` in \[study.perturbations.settings\]. Did you mean `beta`"),
     ({}, {"settings": {"beta": -0.2}}, "settings.*beta.*>= 0"),
+    ({}, {"settings": {"beta": "high"}}, "`study.perturbations.settings.beta` must be a number"),
     ({}, {"bias_percent": -5}, "bias_percent = -5"),
     ({"modality": "ct"}, {"bias_percent": 5}, "CT has no multiplicative bias"),
     ({"segmented": False}, {}, "not a segmented scan: set segmented = true"),
@@ -171,7 +172,7 @@ def cfg_dict(ref=None, **pert):
     ({"source": "labels", "labels_path": "x.nii.gz", "segmented": False}, {}, "source = 'labels' has no scan"),
     ({"source": "labels", "labels_path": "x.nii.gz"}, {}, "segmented = true, but source = 'labels'"),
     ({"source": "scan"}, {}, "needs scan_path"),
-    ({"segment": {"atlas": "colin"}}, {}, "\\[study.reference\\] segment.*atlas"),
+    ({"segment": {"atlas": "colin"}}, {}, "study.reference.segment.*atlas"),
     ({"segmented": False, "segment": {"beta": 0.1}}, {}, "segment is set, but the reference head is not"),
 ])
 def test_bad_resegment_config_is_one_clear_error(ref, pert, match):

@@ -18,6 +18,7 @@ from typing import Literal
 
 import numpy as np
 
+from .._tables import fields_from_dict
 from ..segmentation import RegisterConfig, SegmentConfig
 from ..tissue import DEFAULT_SIGMA_S_M, TISSUE_NAMES, Tissue
 from .measures import MeasureConfig
@@ -46,26 +47,22 @@ SEGMENT_SETTINGS = tuple(f.name for f in dataclasses.fields(SegmentConfig) if f.
 
 
 def _check_settings(overrides, where: str) -> dict:
+    """`overrides` as SegmentConfig keyword arguments, typed (`jaxhead._tables`); a `register`
+    table stays a dict of checked RegisterConfig fields, applied over the base config's."""
     if not isinstance(overrides, dict):
         raise ValueError(f"{where} must be a table of SegmentConfig fields, e.g. {{beta = 0.2}}, "
                          f"got {overrides!r}.")
-    for k in overrides:
-        if k == "modality":
-            raise ValueError(f"{where} sets `modality`; the scan's modality is [study.reference] "
-                             "modality, remove it here.")
-        if k not in SEGMENT_SETTINGS:
-            raise ValueError(f"{where} has unknown SegmentConfig key {k!r}"
-                             f"{_closest(k, SEGMENT_SETTINGS)}; valid keys: {sorted(SEGMENT_SETTINGS)}.")
+    if "modality" in overrides:
+        raise ValueError(f"{where} sets `modality`; the scan's modality is [study.reference] "
+                         "modality, remove it here.")
+    rest = {k: v for k, v in overrides.items() if k != "register"}
+    kw = fields_from_dict(SegmentConfig, rest, where)
     reg = overrides.get("register")
-    if reg is not None and not isinstance(reg, (dict, RegisterConfig)):
-        raise ValueError(f"{where}.register must be a table of RegisterConfig fields, got {reg!r}.")
-    if isinstance(reg, dict):
-        names = [f.name for f in dataclasses.fields(RegisterConfig)]
-        for k in reg:
-            if k not in names:
-                raise ValueError(f"{where}.register has unknown key {k!r}{_closest(k, names)}; "
-                                 f"valid keys: {sorted(names)}.")
-    return dict(overrides)
+    if isinstance(reg, RegisterConfig):
+        kw["register"] = reg
+    elif reg is not None:
+        kw["register"] = fields_from_dict(RegisterConfig, reg, f"{where}.register")
+    return kw
 
 
 def segment_config(modality: str, overrides: dict | None = None, *,
@@ -84,9 +81,7 @@ def segment_config(modality: str, overrides: dict | None = None, *,
     kw = _check_settings(overrides or {}, where)
     base = base if base is not None else SegmentConfig(modality=modality)
     if isinstance(kw.get("register"), dict):
-        kw["register"] = dataclasses.replace(
-            base.register, **{k: tuple(v) if isinstance(v, list) else v
-                              for k, v in kw["register"].items()})
+        kw["register"] = dataclasses.replace(base.register, **kw["register"])
     try:
         return dataclasses.replace(base, modality=modality, **kw)
     except (TypeError, ValueError) as e:
@@ -182,7 +177,7 @@ class ReferenceConfig:
 
     def segment_config(self) -> SegmentConfig:
         """The reference segmentation's SegmentConfig."""
-        return segment_config(self.modality, self.segment, where="[study.reference] segment")
+        return segment_config(self.modality, self.segment, where="study.reference.segment")
 
     def sigma(self) -> np.ndarray:
         """(4,) conductivities in S/m (BRAIN, CSF, SKULL, SCALP)."""
@@ -250,7 +245,7 @@ class PerturbationConfig:
         if self.kind != "resegment" and (self.settings or self.bias_percent):
             raise ValueError(f"[[study.perturbations]] kind {self.kind!r} sets settings or "
                              "bias_percent; they belong to kind = \"resegment\" only.")
-        _check_settings(self.settings, "[[study.perturbations]] settings")
+        _check_settings(self.settings, "study.perturbations.settings")
         if not (isinstance(self.bias_percent, (int, float)) and np.isfinite(self.bias_percent)
                 and self.bias_percent >= 0):
             raise ValueError(f"[[study.perturbations]] bias_percent = {self.bias_percent!r}; it "
@@ -304,7 +299,7 @@ class StudyConfig:
                              f"is not a segmented scan: {fix}.")
         for p in reseg:
             segment_config(rc.modality, p.settings, base=rc.segment_config(),
-                           where="[[study.perturbations]] settings")
+                           where="study.perturbations.settings")
             if p.bias_percent and rc.modality == "ct":
                 raise ValueError(f"[[study.perturbations]] bias_percent = {p.bias_percent} with a "
                                  "CT reference: a CT has no multiplicative bias field; use 0.")
