@@ -354,9 +354,11 @@ def head_facing(nodes: np.ndarray, tets: np.ndarray) -> dict:
 
     The lowest 15 % (in z) of the outer boundary is the neck (or the cut through it), which
     lies behind the cranium: the vector from the centroid of the neck's boundary nodes to that
-    of the upper half's points backwards (the phantom head: 18 mm; MNI152-based meshes cut at
-    the neck alike). Below 3 % of the head's height (a sphere, a head cut above the neck) the
-    direction is undetermined and nothing is claimed. Superior is assumed to be +z.
+    of the upper half's points backwards (the phantom head: 18 mm). Below 3 % of the head's
+    height the direction is undetermined and nothing is claimed: a sphere, a head cut above the
+    neck, and a neck straight under the cranium, as in the MNI152-based head cut at the neck
+    (`experiments/mni152_chain.py`: 1.4 mm against a 7.7 mm threshold). Superior is assumed to
+    be +z.
 
     Returns:
         dict: "anterior" ("+y", "-y", "+x", "-x" or None when undetermined), "angle_deg"
@@ -440,7 +442,7 @@ def load_mesh(path: str | os.PathLike, *, reorient: bool = False, tissue_map=Non
     f = head_facing(mesh.nodes, mesh.tets)
     if f["anterior"] in (None, "+y"):
         if f["anterior"] is None:
-            log.info("%s: facing direction undetermined (no neck found); RAS assumed", path)
+            log.info("%s: facing direction undetermined (no neck offset from the cranium); RAS assumed", path)
         return mesh
     turn = _TURN[f["anterior"]]
     off = np.round(f["neck_offset_mm"], 1).tolist()

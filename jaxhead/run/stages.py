@@ -100,7 +100,7 @@ def _input_mesh(cfg: RunConfig, out: Path) -> dict:
              "are skipped and the mesh stage takes this mesh as it is)",
              f"{mesh.n_tets} tets, {mesh.n_nodes} nodes; tissue map: "
              f"{c.tissue_map if c.tissue_map is not None else 'the file own names / labels 1..4'}",
-             f"facing: anterior {facing['anterior'] or 'undetermined (no neck found)'} "
+             f"facing: anterior {facing['anterior'] or 'undetermined (no neck offset from the cranium)'} "
              f"(facing = {c.facing!r}; after loading; +y is RAS)"]
     lines += [f"  {k:<6} {v['tets']:>9d} tets {v['volume_ml']:>10.1f} ml" for k, v in tissues.items()]
     _write_text(out / "report.txt", "\n".join(lines) + "\n")
