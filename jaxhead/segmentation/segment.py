@@ -5,7 +5,8 @@ Pipeline (one method for both modalities, as the seed's CT branch: Vonach et al.
 1. register the atlas template to the scan (affine on a pyramid, then cubic B-spline; register.py),
 2. resample the atlas priors onto the scan's grid through that transform,
 3. EM with atlas priors, prior relaxation, Potts MRF and (MRI) bias field on a strided sample of the
-   grid (`em_sample_mm`, as SPM samples every 3 mm to estimate its mixture), em.py,
+   grid (`em_sample_mm`, as SPM samples every 3 mm to estimate its mixture), em.py; by default for CT
+   on the scan after edge-preserving smoothing tied to its estimated noise (`denoise`, denoise.py),
 4. posteriors on the full grid at the fitted parameters with mean-field MRF sweeps,
 5. CT: the bone surface relabelled by the partial-volume majority rule (`bone_majority`),
 6. hard labels = argmax of the five class posteriors (BACKGROUND, BRAIN, CSF, SKULL, SCALP).
@@ -27,6 +28,8 @@ What the intensity model assumes (and what it learns from the scan):
   multiplicative bias field (Legendre polynomial, degree 4; tens of per cent), noise small against
   the tissue contrasts (a few per cent). CT: Hounsfield units (air near -1000), no bias field.
 - Tissue boundaries are smooth on the voxel scale (Potts MRF, beta).
+- CT (`denoise`): the noise is additive, roughly stationary and uncorrelated between voxels (its sd
+  is estimated from neighbour differences), and tissue steps of more than ~2 noise sd are edges.
 - The scan is a head in the orientation its affine states (checked: `check_orientation`,
   `check_registration`).
 
