@@ -1,36 +1,30 @@
-"""Time label map -> Table-2-clean mesh on a phantom head: jaxhead's default mesher against the raw
-mesher and fTetWild, on the same surfaces, in one run, with ratios.
+"""Time label map -> Table-2-clean mesh on a head: jaxhead's default mesher against the raw mesher
+and fTetWild, on the same surfaces, in one run, with ratios.
 
-Stages timed (wall and CPU seconds): make_head (the phantom, not part of the pipeline),
-make_layers, extract_surfaces, tetrahedralize with MeshConfig() (the default path: mesher "auto",
-i.e. gmsh when installed, then TetGen, then fTetWild; improvement on), quality_report. Then every
-mesher in --compare meshes the same surfaces; for each: the raw mesher's seconds (the report's
-mesher step), the improvement's seconds, tets, the seed paper's Table-2 counts before the
-improvement (scaled Jacobian < 0.2, condition > 3) and after it (Vonach et al. 2012: MRI meshes of
-~300k elements had 3-11 and 8-26 outside), per-tissue volume against the layered label map's
-voxels, and the tet-centroid label agreement. Ratios: fTetWild's tetrahedralize against the
-default's, and the default's tetrahedralize against its raw mesher.
+The mesh is the one the pipeline's mesh stage makes: MeshConfig() refined under the electrodes
+(`--electrodes`, default the 10-20 layout's 21; `electrodes.refined_mesh_config`, as the mesh
+stage calls it); `--electrodes none` times the unrefined mesh. Stages timed (wall and CPU seconds):
+the head's labels (phantom `make_head`, or `--head mni152`: the MNI152-based head's true labels at
+1 mm, cut at the neck; not part of the figure), make_layers, extract_surfaces, the refine points,
+tetrahedralize (mesher "auto": gmsh when installed, then TetGen, then fTetWild; improvement on),
+quality_report. Then every mesher in --compare meshes the same surfaces with the same refinement;
+for each: the raw mesher's seconds (the report's mesher step), the improvement's seconds, tets, the
+seed paper's Table-2 counts before the improvement (scaled Jacobian < 0.2, condition > 3) and after
+it (Vonach et al. 2012: MRI meshes of ~300k elements had 3-11 and 8-26 outside), per-tissue volume
+against the layered label map's voxels, and the tet-centroid label agreement. Ratios: fTetWild's
+tetrahedralize against the default's, and the default's tetrahedralize against its raw mesher.
+The refinement is printed as the mean edge of scalp tets near the electrodes and elsewhere.
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py                  # 2 mm
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py --voxel-mm 1.0 --compare gmsh,tetgen
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py                  # 2 mm, with fTetWild
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py --voxel-mm 1 --no-ftetwild
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py --head mni152 --electrodes 32 --no-ftetwild
 
-The machine is shared: the load average is printed at the start and the end.
-
-Measured (2 shared cores, load average 1.4-1.6, OPENBLAS_NUM_THREADS=1, gmsh 4.15.2, tetgen 0.8.4,
-pytetwild 0.4.2; `benchmarks/mesh.py --voxel-mm 2`): default path (gmsh) label map -> Table-2-clean
-mesh 15.2 s (tetrahedralize 11.8 s: gmsh 8.6, improvement 2.7), 124,711 tets, 0 outside Table 2,
-volumes within 0.92 % of the voxels', centroid agreement 98.8 % of tets. Same surfaces:
-
-    mesher          total s   raw s  impr s     tets  SJ<0.2  cond>3  after J/SJ/D/C  vol err % B/C/S/Sc
-    gmsh               11.7     9.7     1.5   124711      99       0         0/0/0/0  -0.3/+0.9/-0.2/-0.3
-    tetgen              8.4     2.1     5.7   188952    1270    2172         0/0/0/0  -0.4/+1.2/-0.2/-0.4
-    ftetwild          119.4   113.1     1.2   260792       0       0         0/0/0/0  -0.4/+1.0/-0.3/-0.4
-    ftetwild-fast     117.4   111.2     1.1   258444       0       0         0/0/0/0  -0.4/+0.9/-0.2/-0.4
-
-fTetWild's time is not in its optimisation passes (stop energy 100 and 3 passes save 2 s of 113).
+The machine is shared: the load average is printed at the start and the end. Figures:
+experiments/results/meshers.md and the README's "Geometry" section.
 """
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -47,12 +41,14 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from jaxhead.electrodes import ElectrodeConfig, refined_mesh_config  # noqa: E402
 from jaxhead.geometry import MeshConfig, tetrahedralize_reported  # noqa: E402
 from jaxhead.geometry.layers import make_layers  # noqa: E402
 from jaxhead.geometry.quality import quality_report  # noqa: E402
 from jaxhead.geometry.surface import SurfaceConfig, extract_surfaces  # noqa: E402
 from jaxhead.phantom import make_head  # noqa: E402
-from jaxhead.tissue import TISSUES  # noqa: E402
+from jaxhead.segmentation.templates import mni152_anatomy  # noqa: E402
+from jaxhead.tissue import TISSUES, Tissue  # noqa: E402
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
 #: fTetWild with faster settings than MeshConfig's (stop energy 30, 20 passes): fewer passes and a
@@ -115,6 +111,20 @@ def agreement_report(mesh, labels, surfaces) -> str:
     return "\n".join(lines)
 
 
+def refinement_edges(mesh, cfg: MeshConfig) -> tuple[float, float]:
+    """Mean edge (mm) of the scalp tets whose centroid lies within cfg's refine radius of a refine
+    point, and of the other scalp tets: the refinement under the electrodes, as a figure."""
+    from scipy.spatial import cKDTree
+
+    scalp = np.asarray(mesh.labels) == int(Tissue.SCALP)
+    p = np.asarray(mesh.nodes)[np.asarray(mesh.tets)[scalp]]
+    edge = np.mean([np.linalg.norm(p[:, i] - p[:, j], axis=1)
+                    for i in range(4) for j in range(i + 1, 4)], axis=0)
+    d, _ = cKDTree(np.asarray(cfg.refine_points_mm)).query(p.mean(axis=1))
+    near = d <= cfg.refine_radius_mm
+    return float(edge[near].mean()), float(edge[~near].mean())
+
+
 def voxel_volume_errors(mesh, layers) -> dict:
     """Per-tissue relative error of the mesh volume against the layered label map's voxels."""
     vox = float(np.prod(voxel_sizes(np.asarray(layers.affine))))
@@ -123,10 +133,10 @@ def voxel_volume_errors(mesh, layers) -> dict:
     return {t: vols[t] / (float((lab == int(t)).sum()) * vox) - 1.0 for t in TISSUES}
 
 
-def _candidate(name: str, surfaces, cfg_kw: dict, layers) -> dict:
+def _candidate(name: str, surfaces, cfg: MeshConfig, layers) -> dict:
     """Mesh the surfaces with one mesher (and the improvement); its numbers for the table."""
     w0, c0 = time.perf_counter(), time.process_time()
-    mesh, rep = tetrahedralize_reported(surfaces, MeshConfig(**cfg_kw))
+    mesh, rep = tetrahedralize_reported(surfaces, cfg)
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     row = quality_report(mesh).table2_row
     imp = rep.improvement
@@ -143,12 +153,20 @@ def _candidate(name: str, surfaces, cfg_kw: dict, layers) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--voxel-mm", type=float, default=2.0, help="phantom voxel size (2 mm; 1 mm for the fine head)")
+    ap.add_argument("--head", choices=("phantom", "mni152"), default="phantom",
+                    help="phantom (make_head at --voxel-mm) or the MNI152-based head's true labels "
+                         "(1 mm, cut at the neck; --voxel-mm and --modality ignored)")
     ap.add_argument("--modality", choices=("mri", "ct"), default="mri")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=0, help="gmsh/fTetWild threads (0: all cores)")
-    ap.add_argument("--compare", type=str, default="gmsh,tetgen,ftetwild,ftetwild-fast",
+    ap.add_argument("--compare", type=str, default="gmsh,tetgen,ftetwild",
                     help="meshers to time on the same surfaces (installed ones only): gmsh, tetgen, "
                          f"ftetwild (MeshConfig's settings), ftetwild-fast ({FTETWILD_FAST})")
+    ap.add_argument("--no-ftetwild", action="store_true",
+                    help="leave fTetWild out of --compare (it takes ~2 min at 2 mm, ~10 min at 1 mm)")
+    ap.add_argument("--electrodes", type=str, default="10-20",
+                    help='refine under this ElectrodeConfig layout as the pipeline\'s mesh stage does '
+                         '("10-20", "10-10", or a count); "none" for no refinement')
     ap.add_argument("--edge-mm", type=str, default=None,
                     help='JSON per-tissue edges, e.g. \'{"brain": 4, "csf": 2, "skull": 2.5, "scalp": 3}\'')
     ap.add_argument("--save", type=str, default=None, help="save the default mesh's nodes/tets/labels to this .npz")
@@ -166,24 +184,34 @@ def main(argv=None):
     kw = {"threads": a.threads}
     if a.edge_mm:
         kw["edge_mm"] = json.loads(a.edge_mm)
-    _, labels = clock("make_head (phantom)", lambda: make_head(a.modality, voxel_mm=a.voxel_mm, seed=a.seed))
+    if a.head == "mni152":
+        labels = clock("head labels", lambda: mni152_anatomy().labels())
+    else:
+        _, labels = clock("head labels", lambda: make_head(a.modality, voxel_mm=a.voxel_mm, seed=a.seed))
     layers = clock("make_layers", make_layers, labels)
     surfaces = clock("extract_surfaces", extract_surfaces, layers, SurfaceConfig())
     print("surface faces: " + ", ".join(f"{t.name} {len(s.faces)}" for t, s in surfaces.items()), flush=True)
-    mesh, rep = clock("tetrahedralize", tetrahedralize_reported, surfaces, MeshConfig(**kw))
+    cfg = MeshConfig(**kw)
+    if a.electrodes != "none":
+        layout = int(a.electrodes) if a.electrodes.isdigit() else a.electrodes
+        cfg = clock("refine points", refined_mesh_config, cfg, surfaces[Tissue.SCALP],
+                    ElectrodeConfig(layout=layout))
+    print(f"refined to {cfg.refine_edge_mm:g} mm within {cfg.refine_radius_mm:g} mm of "
+          f"{len(cfg.refine_points_mm)} electrode positions ({a.electrodes})", flush=True)
+    mesh, rep = clock("tetrahedralize", tetrahedralize_reported, surfaces, cfg)
     if a.save:
         np.savez(a.save, nodes=mesh.nodes, tets=mesh.tets, labels=mesh.labels)
     q = clock("quality_report", quality_report, mesh)
 
-    print(f"phantom {a.modality} {a.voxel_mm:g} mm, grid {np.asarray(labels.labels).shape}, seed {a.seed}; "
+    print(f"{a.head} {a.modality} {voxel_sizes(np.asarray(labels.affine)).max():g} mm, grid {np.asarray(labels.labels).shape}, seed {a.seed}; "
           f"default mesher: {rep.mesher}")
     print("default path, seconds per stage (wall, CPU of this process incl. mesher threads):")
     for k, v in t.items():
         print(f"  {k:<22s} {v:8.1f} {cpu[k]:8.1f}")
     for k, v in rep.seconds.items():
         print(f"    tetrahedralize/{k:<10s} {v:6.1f}")
-    stages = ("make_layers", "extract_surfaces", "tetrahedralize", "quality_report")
-    pipeline = sum(t[k] for k in stages)
+    stages = ("make_layers", "extract_surfaces", "refine points", "tetrahedralize", "quality_report")
+    pipeline = sum(t.get(k, 0.0) for k in stages)
     print(f"  label map -> Table-2-clean mesh {pipeline:6.1f} s wall (target <= 30 s at 2 mm, <= 60 s at 1 mm; "
           f"seed paper ~1800 s per MRI with manual steps)")
     print(rep)
@@ -195,6 +223,10 @@ def main(argv=None):
     print("per-tissue volume vs voxel volume of the layered label map: " + ", ".join(
         f"{t.name} {100 * e:+.2f} %" for t, e in err.items()))
     print(agreement_report(mesh, layers, surfaces), flush=True)
+    if cfg.refine_points_mm:
+        near, far = refinement_edges(mesh, cfg)
+        print(f"mean edge of scalp tets within the refine radius of an electrode {near:.2f} mm, "
+              f"farther {far:.2f} mm (target {cfg.refine_edge_mm:g} mm near)", flush=True)
 
     from jaxhead.geometry.tetrahedralize import available_meshers
 
@@ -202,13 +234,15 @@ def main(argv=None):
     rows = []
     for name in [s.strip() for s in a.compare.split(",") if s.strip()]:
         mesher = "ftetwild" if name.startswith("ftetwild") else name
+        if mesher == "ftetwild" and a.no_ftetwild:
+            continue
         if mesher not in have:
             print(f"[{name}: not installed, skipped]")
             continue
-        ckw = dict(kw, mesher=mesher, **(FTETWILD_FAST if name == "ftetwild-fast" else {}))
+        ccfg = dataclasses.replace(cfg, mesher=mesher, **(FTETWILD_FAST if name == "ftetwild-fast" else {}))
         print(f"meshing the same surfaces with {name} ...", flush=True)
-        rows.append(_candidate(name, surfaces, ckw, layers))
-    print(f"\nmeshers on the same surfaces ({a.voxel_mm:g} mm phantom), load average now {_load()}:")
+        rows.append(_candidate(name, surfaces, ccfg, layers))
+    print(f"\nmeshers on the same surfaces ({a.head}), load average now {_load()}:")
     print(f"  {'mesher':<14s} {'total s':>8s} {'raw s':>7s} {'impr s':>7s} {'tets':>8s} "
           f"{'SJ<0.2':>7s} {'cond>3':>7s} {'after J/SJ/D/C':>15s} {'vol err % B/C/S/Sc':>26s} {'agree':>6s}")
     for r in rows:

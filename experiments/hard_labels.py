@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from benchmarks.mesh import centroid_agreement, voxel_volume_errors  # noqa: E402
-from jaxhead.electrodes import ElectrodeConfig, electrode_positions  # noqa: E402
+from jaxhead.electrodes import ElectrodeConfig, refined_mesh_config  # noqa: E402
 from jaxhead.geometry.layers import LayerConfig  # noqa: E402
 from jaxhead.geometry.quality import quality_report  # noqa: E402
 from jaxhead.geometry.surface import SurfaceConfig  # noqa: E402
@@ -62,11 +62,7 @@ def nesting_violations(mesh) -> int:
 def mesh_one(name, labels, layers, surfaces) -> dict:
     """Mesh the case's surfaces as the pipeline's mesh stage does; the acceptance figures."""
     t0 = time.perf_counter()
-    ecfg = ElectrodeConfig()
-    base = MeshConfig()
-    pos = electrode_positions(surfaces[Tissue.SCALP], ecfg)
-    cfg = MeshConfig(refine_points_mm=tuple(map(tuple, pos.tolist())),
-                     refine_radius_mm=max(base.refine_radius_mm, ecfg.radius_mm + 2 * base.refine_edge_mm))
+    cfg = refined_mesh_config(MeshConfig(), surfaces[Tissue.SCALP], ElectrodeConfig())
     row = {"case": name}
     try:
         mesh, rep = tetrahedralize_reported(surfaces, cfg)

@@ -14,6 +14,7 @@ import heapq
 import json
 import math
 import warnings
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from scipy.spatial import cKDTree
 from trimesh.proximity import closest_point
 
 from .geometry.surface import Surface
+from .geometry.tetrahedralize import MeshConfig
 from .geometry.tetmesh import TetMesh
 
 #: Default contact impedance in Ohm m^2 (see `place_electrodes`).
@@ -849,6 +851,23 @@ def electrode_positions(scalp: TetMesh | Surface, cfg: ElectrodeConfig = Electro
         return spread_positions(scalp, cfg.layout, landmarks=landmarks)
     layout = cfg.layout if isinstance(cfg.layout, str) else list(cfg.layout)
     return np.asarray(layout_positions(scalp, layout, landmarks=landmarks)[1])
+
+
+def refined_mesh_config(mesh_cfg: MeshConfig, scalp: TetMesh | Surface,
+                        cfg: ElectrodeConfig = ElectrodeConfig()) -> MeshConfig:
+    """`mesh_cfg` refined under the electrodes of `cfg`, as the pipeline's mesh stage meshes.
+
+    The refine points are `electrode_positions` on the scalp; the refine radius is at least
+    the electrode radius plus two refined edges (the rule `ElectrodeConfig.refine_mesh`
+    documents). Returns `mesh_cfg` unchanged when `cfg.refine_mesh` is false or `mesh_cfg`
+    already has its own refine points.
+    """
+    if not cfg.refine_mesh or mesh_cfg.refine_points_mm:
+        return mesh_cfg
+    pos = electrode_positions(scalp, cfg)
+    radius = max(mesh_cfg.refine_radius_mm, cfg.radius_mm + 2 * mesh_cfg.refine_edge_mm)
+    return dataclasses.replace(mesh_cfg, refine_points_mm=tuple(map(tuple, pos.tolist())),
+                               refine_radius_mm=radius)
 
 
 def electrodes_from_config(mesh: TetMesh, cfg: ElectrodeConfig = ElectrodeConfig()) -> Electrodes:

@@ -304,3 +304,26 @@ def test_improve_mends_the_needle_fan():
     assert stats["nodes_inserted"] > 0
     assert np.all(signed_volumes(n2, t2) > 0) and _conforming(t2)
     assert _faces(t2, l2) == _faces(tets, labels)
+
+
+def test_quality_matches_the_verdict_metrics():
+    """The improvement's NumPy quality equals quality.tet_metrics' (the jit-compiled Verdict
+    metrics) on random, inverted, flat and collapsed tets, and its helper ranges are aranges."""
+    from jaxhead.geometry.improve import _ranges, _sj_cond
+    from jaxhead.geometry.quality import tet_metrics
+
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(500, 4, 3)) * rng.uniform(0.1, 10, size=(500, 1, 1))
+    p[1] = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 3, 0]]  # flat
+    p[2] = 0.0  # collapsed to a point
+    p[3] = p[3][[1, 0, 2, 3]]  # inverted copy of a random tet
+    sj, cond = _sj_cond(p)
+    ref = tet_metrics(p.reshape(-1, 3), np.arange(2000).reshape(-1, 4))
+    np.testing.assert_allclose(sj, np.asarray(ref["scaled_jacobian"]), rtol=1e-12, atol=1e-14)
+    fin = np.isfinite(np.asarray(ref["condition"]))
+    assert (fin == np.isfinite(cond)).all() and not fin[1:3].any()
+    np.testing.assert_allclose(cond[fin], np.asarray(ref["condition"])[fin], rtol=1e-12)
+    assert (sj < 0).sum() > 100 and sj[1] == 0 and sj[2] == 0
+    starts, ends = np.array([4, 0, 9, 9]), np.array([7, 2, 9, 12])
+    np.testing.assert_array_equal(_ranges(starts, ends), [4, 5, 6, 0, 1, 9, 10, 11])
+    assert len(_ranges(np.array([3]), np.array([3]))) == 0

@@ -42,7 +42,6 @@ import time
 
 import numpy as np
 
-from .quality import tet_metrics
 from .tetmesh import _TET_FACES, face_adjacency, signed_volumes
 
 #: The seed paper's Table-2 limit (scaled Jacobian 0.2, condition number 3) in terms of q.
@@ -55,9 +54,6 @@ _PATIENCE = 3
 TARGET_QUALITY = 0.22
 
 _STEPS = np.array([1.0, 0.6, 0.3, 0.12])
-
-_REGULAR = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, np.sqrt(3) / 2, 0.0],
-                     [0.5, np.sqrt(3) / 6, np.sqrt(2.0 / 3.0)]])
 
 
 def tet_quality(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -74,23 +70,45 @@ def tet_quality(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 
 def _sj_cond(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Scaled Jacobian and condition number (``jaxhead.geometry.quality``) of tets with corners p (m, 4, 3)."""
+    """Scaled Jacobian and condition number of tets with corners p (m, 4, 3).
 
-    sj, cond = np.zeros(len(p)), np.zeros(len(p))
-    for a in range(0, len(p), _BUCKETS[-1]):
-        chunk = p[a:a + _BUCKETS[-1]]
-        m = len(chunk)
-        # Pad to one of a few fixed sizes so the jit-compiled metrics compile at most 3 times.
-        size = next(b for b in _BUCKETS if b >= m)
-        pts = np.concatenate([chunk, np.broadcast_to(_REGULAR, (size - m, 4, 3))]).reshape(-1, 3)
-        q = tet_metrics(pts, _ARANGE[:size])
-        sj[a:a + m] = np.asarray(q["scaled_jacobian"])[:m]
-        cond[a:a + m] = np.asarray(q["condition"])[:m]
+    Verdict's definitions, as ``jaxhead.geometry.quality`` computes them (the tests check that
+    they agree), in NumPy: the improvement step evaluates a few thousand candidate tets at a
+    time, where a jit-compiled call costs more in dispatch and padding than the arithmetic.
+    """
+    p = np.asarray(p, dtype=np.float64)
+    p0, p1, p2, p3 = p[:, 0], p[:, 1], p[:, 2], p[:, 3]
+    l0, l1, l2 = p1 - p0, p2 - p1, p0 - p2
+    l3, l4, l5 = p3 - p0, p3 - p1, p3 - p2
+    sq = [np.einsum("ij,ij->i", v, v) for v in (l0, l1, l2, l3, l4, l5)]
+    jac = np.einsum("ij,ij->i", np.cross(l2, l0), l3)
+    corner = np.maximum(np.maximum(sq[0] * sq[2] * sq[3], sq[0] * sq[1] * sq[4]),
+                        np.maximum(sq[1] * sq[2] * sq[5], sq[3] * sq[4] * sq[5]))
+    length_product = np.maximum(np.sqrt(corner), np.abs(jac))
+    sj = np.sqrt(2.0) * jac / np.where(length_product > 0, length_product, 1.0)
+    sj[length_product == 0] = 0.0
+    # S = A W^-1 with the regular tet as the target: columns c1..c3.
+    c1 = l0
+    c2 = (-2.0 * l2 - l0) / np.sqrt(3.0)
+    c3 = (3.0 * l3 + l2 - l0) / np.sqrt(6.0)
+    frob2 = sum(np.einsum("ij,ij->i", c, c) for c in (c1, c2, c3))
+    c23 = np.cross(c2, c3)
+    adj2 = sum(np.einsum("ij,ij->i", c, c) for c in (np.cross(c1, c2), c23, np.cross(c1, c3)))
+    det_s = np.einsum("ij,ij->i", c1, c23)
+    cond = np.full(len(p), np.inf)
+    nz = det_s != 0
+    cond[nz] = np.sqrt(frob2[nz] * adj2[nz]) / (3.0 * det_s[nz])
     return sj, cond
 
 
-_BUCKETS = (1 << 12, 1 << 15, 1 << 18)
-_ARANGE = np.arange(4 * _BUCKETS[-1]).reshape(-1, 4)
+def _ranges(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """The concatenation of arange(s, e) over the pairs, without a Python loop."""
+    counts = ends - starts
+    total = int(counts.sum())
+    if total == 0:
+        return np.zeros(0, dtype=np.int64)
+    first = np.cumsum(counts) - counts
+    return np.arange(total) - np.repeat(first - starts, counts)
 
 
 def _incidence(tets: np.ndarray, n_nodes: int):
@@ -125,13 +143,12 @@ def _independent(cand: np.ndarray, tets: np.ndarray, ptr, inc_t, rng) -> np.ndar
     """A subset of `cand` nodes no two of which share a tet (Luby's random priorities)."""
     prio = np.full(ptr.shape[0] - 1, -1.0)
     prio[cand] = rng.random(len(cand))
-    tet_max = prio[tets].max(axis=1)
     starts, ends = ptr[cand], ptr[cand + 1]
     seg = np.repeat(np.arange(len(cand)), ends - starts)
-    idx = np.concatenate([inc_t[s:e] for s, e in zip(starts, ends)]) if len(cand) else np.zeros(0, int)
-    ok = np.ones(len(cand), dtype=bool)
-    np.logical_and.at(ok, seg, tet_max[idx] == prio[cand][seg])
-    return cand[ok]
+    # Only the candidates' own tets matter: a node wins when it has the top priority in each.
+    tet_max = prio[tets[inc_t[_ranges(starts, ends)]]].max(axis=1)
+    lost = np.bincount(seg, weights=tet_max != prio[cand][seg], minlength=len(cand))
+    return cand[lost == 0]
 
 
 def _relocate(nodes, tets, q, sel, cls, ptr, inc_t, inc_c, project) -> int:
@@ -139,7 +156,7 @@ def _relocate(nodes, tets, q, sel, cls, ptr, inc_t, inc_c, project) -> int:
     starts, ends = ptr[sel], ptr[sel + 1]
     counts = ends - starts
     seg = np.repeat(np.arange(len(sel)), counts)
-    flat = np.concatenate([np.arange(s, e) for s, e in zip(starts, ends)])
+    flat = _ranges(starts, ends)
     st, sc = inc_t[flat], inc_c[flat]  # star tets and the node's corner in each
     # Opposite face of the node's corner, outward from the tet (away from the node).
     face = tets[st[:, None], _TET_FACES[sc]]

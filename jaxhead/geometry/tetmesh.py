@@ -175,9 +175,19 @@ def face_adjacency(tets: np.ndarray):
     faces = tets[:, _TET_FACES].reshape(-1, 3)
     owner = np.repeat(np.arange(len(tets)), 4)
     key = np.sort(faces, axis=1)
-    order = np.lexsort(key.T[::-1])
-    ks = key[order]
-    same = np.all(ks[1:] == ks[:-1], axis=1)
+    n = int(faces.max()) + 1 if faces.size else 1
+    if n < 1 << 21:
+        # One int64 per face (three 21-bit node indices): the same order as the lexsort below,
+        # several times faster; the improvement step calls this once per pass.
+        k = key.astype(np.int64)
+        code = (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+        order = np.argsort(code, kind="stable")
+        cs = code[order]
+        same = cs[1:] == cs[:-1]
+    else:
+        order = np.lexsort(key.T[::-1])
+        ks = key[order]
+        same = np.all(ks[1:] == ks[:-1], axis=1)
     i, j = order[:-1][same], order[1:][same]
     boundary = np.ones(len(faces), dtype=bool)
     boundary[i] = False

@@ -15,10 +15,10 @@ import numpy as np
 
 from .. import io
 from ..electrodes import (
-    electrode_positions,
     electrodes_from_config,
     is_electrode_name,
     place_electrodes,
+    refined_mesh_config,
     register_positions,
 )
 from ..fem import Direct, build_forward_model, potentials, simulate
@@ -240,16 +240,11 @@ def _mesh_config(cfg: RunConfig, surfaces):
 
 
     mesh_cfg = cfg.mesh
-    if not cfg.electrodes.refine_mesh or mesh_cfg.refine_points_mm:
-        return mesh_cfg  # refinement off, or the user's own refine points
-    pos = electrode_positions(surfaces[Tissue.SCALP], cfg.electrodes)
-    # The rule `ElectrodeConfig.refine_mesh` documents (with its measured effect): at least the
-    # electrode radius plus two refined edges.
-    radius = max(mesh_cfg.refine_radius_mm, cfg.electrodes.radius_mm + 2 * mesh_cfg.refine_edge_mm)
-    logger.info("mesh: refining to %.1f mm within %.1f mm of %d electrode positions",
-                mesh_cfg.refine_edge_mm, radius, len(pos))
-    return dataclasses.replace(mesh_cfg, refine_points_mm=tuple(map(tuple, pos.tolist())),
-                               refine_radius_mm=radius)
+    out = refined_mesh_config(mesh_cfg, surfaces[Tissue.SCALP], cfg.electrodes)
+    if out is not mesh_cfg:
+        logger.info("mesh: refining to %.1f mm within %.1f mm of %d electrode positions",
+                    out.refine_edge_mm, out.refine_radius_mm, len(out.refine_points_mm))
+    return out
 
 
 @stage(config=("export",), reads=("mesh",))
