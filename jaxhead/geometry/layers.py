@@ -33,7 +33,7 @@ does the same as explicit 3D rules, in this order, and counts every relabelled v
    closing plugs is a bar of the solid over a wide opening (in a real skull, thin bony bars of
    the face and skull base: five in the ANTs head at 2 mm, by the zygoma and the mandible): it is cut
    instead, by the dual rule, openings of the same radii, thinned to one cross-section of the
-   bar and relabelled as the next tissue out (``handles_cut`` in the report). The rule runs again
+   bar (widened to the opening's diameter) and relabelled as the next tissue out (``handles_cut`` in the report). The rule runs again
    after rule 6 (whose growth can bridge a groove), followed by rules 5 and 6; the genus of each
    solid before and after is in the report. A handle left after that (both the bar and the
    opening wider than ``2 max_tunnel_voxels`` voxels, e.g. a tunnel under a fragmented scalp) is
@@ -565,8 +565,9 @@ def _plug_tunnels(L: np.ndarray, k: int, vox, max_r: int, kept: np.ndarray | Non
     shell tissue outside `fixed` (the inner solid's nesting and thickness band, which rules 5
     and 6 would grow back), and a piece is removed (relabelled k + 1, background for the head)
     only if it raises the same Euler sum while the solid stays one face-connected component
-    without cavities, i.e. exactly when it lowers the genus; only the piece's cross-section is
-    cut (:func:`_thin_cut`). Filling stays first: it seals a
+    without cavities, i.e. exactly when it lowers the genus; only one cross-section of the piece
+    is cut (:func:`_thin_cut`), widened to the opening's diameter (2 r + 1 voxels), so the gap is
+    as wide as the bar was thin. Filling stays first: it seals a
     channel through a shell (what matters for current flow), where a cut would open one, and
     its results are those of the rule before cuts existed.
     This is the multiscale morphological topology correction of Han, Xu, Tosun & Prince (2002,
@@ -598,7 +599,11 @@ def _plug_tunnels(L: np.ndarray, k: int, vox, max_r: int, kept: np.ndarray | Non
             sub = solid[win]
             if not piece.any() or _euler_gain(sub, sub & ~piece) <= 0:
                 continue
-            piece = _thin_cut(sub, piece)
+            # one cross-section, widened to the opening's diameter: a one-voxel slit is as
+            # narrow as the tunnels this rule removes, and would knot the surface the same way
+            piece = _dilate(_thin_cut(sub, piece), st) & piece
+            if _euler_gain(sub, sub & ~piece) <= 0:
+                continue
             trial = solid.copy()
             trial[win] &= ~piece
             if ndi.label(trial, structure=_CROSS)[1] != 1 or _holes(trial).any():
