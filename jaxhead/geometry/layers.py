@@ -29,9 +29,16 @@ does the same as explicit 3D rules, in this order, and counts every relabelled v
    into a self-intersecting knot. Tunnels are plugged with the smallest closing that removes
    them: the voxels a closing of radius 1, 2, ... ``max_tunnel_voxels`` voxels adds to the solid
    are split into connected pieces, and only pieces that raise the solid's Euler characteristic
-   (a plug, not a groove filler) are added, as the solid's own shell tissue. The rule runs again
+   (a plug, not a groove filler) are added, as the solid's own shell tissue. A handle no such
+   closing plugs is a bar of the solid over a wide opening (in a real skull, thin bony bars of
+   the face and skull base: five in the ANTs head at 2 mm, by the zygoma and the mandible): it is cut
+   instead, by the dual rule, openings of the same radii, thinned to one cross-section of the
+   bar (widened to the opening's diameter) and relabelled as the next tissue out (``handles_cut`` in the report). The rule runs again
    after rule 6 (whose growth can bridge a groove), followed by rules 5 and 6; the genus of each
-   solid before and after is in the report.
+   solid before and after is in the report. A handle left after that (both the bar and the
+   opening wider than ``2 max_tunnel_voxels`` voxels, e.g. a tunnel under a fragmented scalp) is
+   wide against the surface edges, so its surface resolves it; it is kept, reported in
+   ``genus_after`` and logged as a warning.
 5. ``nesting``: strict nesting, the paper's 3x3x3 rule for every shell: no voxel of S_k has a
    26-neighbour outside S_(k+1). The CSF shell takes brain voxels (the paper's brain erosion); the
    skull and scalp shells grow outward (the paper's skull = skull U brain U dilate(CSF)). With it,
@@ -83,9 +90,11 @@ class LayerConfig:
             one brain solid); "keep" keeps it as CSF (counted in the report).
         fov_cut: "close" caps a head cut by the volume border (neck, vertex, face; any side) and
             pads the grid there (rule ``fov``, reported); "error" raises ValueError instead.
-        tunnels: "plug" makes every nested solid genus 0 (rule ``tunnels``); "keep" leaves
-            tunnels (their surfaces may then self-intersect after remeshing).
-        max_tunnel_voxels: largest closing radius (in voxels) tried to plug a tunnel.
+        tunnels: "plug" makes every nested solid genus 0 (rule ``tunnels``: plugs, else cuts,
+            up to `max_tunnel_voxels`); "keep" leaves tunnels (their surfaces may then
+            self-intersect after remeshing).
+        max_tunnel_voxels: largest closing (plug) and opening (cut) radius, in voxels, tried on
+            a tunnel.
     """
 
     closing_radius_mm: float | dict[str, float] | None = None
@@ -147,6 +156,7 @@ class LayerReport:
         padding: voxels added to the grid per side, ((x0, x1), (y0, y1), (z0, z1)); the output
             grid is the input grid grown by it (affine shifted so world positions are kept).
         tunnels_plugged: solid (its Tissue) -> pieces added to plug tunnels.
+        handles_cut: solid (its Tissue) -> pieces removed to cut handles no plug could close.
         genus_before, genus_after: solid -> genus (handles) before rule ``tunnels`` and at the end,
             from the Euler characteristic of the voxel solid (closed cubes).
     """
@@ -164,6 +174,7 @@ class LayerReport:
     fov_cuts: tuple = ()
     padding: tuple = ((0, 0), (0, 0), (0, 0))
     tunnels_plugged: Mapping[Tissue, int] = field(default_factory=dict)
+    handles_cut: Mapping[Tissue, int] = field(default_factory=dict)
     genus_before: Mapping[Tissue, int] = field(default_factory=dict)
     genus_after: Mapping[Tissue, int] = field(default_factory=dict)
 
@@ -207,6 +218,7 @@ class LayerReport:
             "fov_cuts": [dict(c) for c in self.fov_cuts],
             "padding": [list(p) for p in self.padding],
             "tunnels_plugged": {name(t): int(n) for t, n in self.tunnels_plugged.items()},
+            "handles_cut": {name(t): int(n) for t, n in self.handles_cut.items()},
             "genus_before": {name(t): int(n) for t, n in self.genus_before.items()},
             "genus_after": {name(t): int(n) for t, n in self.genus_after.items()},
         }
@@ -233,10 +245,11 @@ class LayerReport:
                 f"({', '.join(f'{k} {v}' for k, v in c['tissues'].items())}), "
                 f"{c['area_mm2']:.0f} mm^2; closed, grid padded {c['pad_voxels']} voxels "
                 f"({c['pad_mm']:g} mm)")
-        if any(self.tunnels_plugged.values()) or any(self.genus_after.values()):
-            lines.append("  tunnels plugged: " + ", ".join(
-                f"{t.name} {self.tunnels_plugged.get(t, 0)} (genus {self.genus_before.get(t, 0)} -> "
-                f"{self.genus_after.get(t, 0)})" for t in TISSUES))
+        if (any(self.tunnels_plugged.values()) or any(self.handles_cut.values())
+                or any(self.genus_after.values())):
+            lines.append("  tunnels plugged / handles cut: " + ", ".join(
+                f"{t.name} {self.tunnels_plugged.get(t, 0)}/{self.handles_cut.get(t, 0)} (genus "
+                f"{self.genus_before.get(t, 0)} -> {self.genus_after.get(t, 0)})" for t in TISSUES))
         lines.append("  volume cm^3 before -> after: " + ", ".join(
             f"{t.name} {self.volumes_before_mm3[t] / 1e3:.1f} -> {self.volumes_after_mm3[t] / 1e3:.1f}"
             for t in TISSUES))
@@ -454,40 +467,153 @@ def _genus(solid: np.ndarray) -> int:
     return max(1 - euler_characteristic(sub), 2 - euler_characteristic(~sub), 0)
 
 
-def _plug_tunnels(L: np.ndarray, k: int, vox, max_r: int, kept: np.ndarray | None) -> int:
-    """Plug the tunnels of solid k = {1 <= L <= k} in place; returns the pieces added.
+def _euler_gain(sub: np.ndarray, new: np.ndarray) -> int:
+    """Change of chi(solid) + chi(complement) from `sub` to `new` (both conventions of :func:`_genus`)."""
+    return (euler_characteristic(new) - euler_characteristic(sub)
+            + euler_characteristic(~new) - euler_characteristic(~sub))
 
-    Closings of radius 1..max_r voxels (in mm: r * the largest voxel edge, a ball) propose voxels;
-    each 26-connected piece is added (as label k) only if it raises the Euler characteristic of
-    the solid plus that of its complement (both diagonal conventions of :func:`_genus`), computed
-    on the piece's bounding box grown by 2 voxels: every cell a piece adds or removes lies within
-    one voxel of it, so the difference there is the difference of the whole grid.
+
+def _pieces(cand: np.ndarray, shape):
+    """26-connected pieces of `cand`: (label array, [(window slices, piece mask in window)])."""
+    lab, _ = ndi.label(cand, structure=_CUBE)
+    out = []
+    for i, sl in enumerate(ndi.find_objects(lab), start=1):
+        if sl is not None:
+            win = tuple(slice(max(a.start - 2, 0), min(a.stop + 2, m)) for a, m in zip(sl, shape))
+            out.append((win, lab[win] == i))
+    return out
+
+
+def _link_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For the 8 corners, 12 edges and 6 faces of the centre cube of a 3x3x3 block: the flat
+    indices (into the block, C order) of the other cubes that share that cell."""
+    d = np.indices((3, 3, 3)).reshape(3, -1).T - 1  # offset of each block cube
+    signs = np.indices((2, 2, 2)).reshape(3, -1).T * 2 - 1  # (8, 3)
+
+    def sharing(cell):  # cell: (3,) in {-1, 0, +1}; cube d shares it iff d_i in {0, cell_i}
+        ok = np.all((d == 0) | (d == cell), axis=1) & np.any(d != 0, axis=1)
+        return np.flatnonzero(ok)
+
+    corners = np.array([sharing(c) for c in signs])
+    pairs = np.indices((2, 2)).reshape(2, -1).T * 2 - 1  # (4, 2)
+    edges = np.array([sharing(np.insert(c, a, 0)) for a in range(3) for c in pairs])
+    faces = np.array([sharing(np.eye(3, dtype=int)[a] * sg) for a in range(3) for sg in (-1, 1)])
+    return corners, edges, faces
+
+
+_LINK = _link_tables()
+
+
+def _link_chi(block: np.ndarray) -> int:
+    """Euler characteristic of the centre closed cube of a 3x3x3 block intersected with the
+    other closed cubes of the block that are set (vertices - edges + faces of the centre cube
+    they cover). Adding the centre cube to a cube complex changes its Euler characteristic by
+    1 - this; a point is simple (its addition changes no topology) when this is 1 for the solid
+    and for the complement alike."""
+    b = block.ravel()
+    corners, edges, faces = _LINK
+    return int(b[corners].any(axis=1).sum()) - int(b[edges].any(axis=1).sum()) + int(b[faces].sum())
+
+
+def _thin_cut(sub: np.ndarray, piece: np.ndarray) -> np.ndarray:
+    """The part of a cut `piece` (voxels to remove from the solid `sub`) that does the cutting.
+
+    An opening removes a whole thin bar, not one cross-section of it. Voxels of the piece are
+    given back to the solid, nearest the kept solid first (so the two ends grow towards each
+    other), whenever they are simple points of the kept solid (:func:`_link_chi`: neither the
+    solid's Euler characteristic nor its complement's changes, a test on the voxel's 26
+    neighbours); what is left is a wall about one voxel thick where the fronts meet, with the
+    piece's Euler gain. `piece` lies at least 2 voxels inside `sub`'s box.
+    """
+    cut = piece.copy()
+    kept = sub & ~cut
+    idx = np.argwhere(cut)
+    dist = ndi.distance_transform_edt(~kept)[tuple(idx.T)]
+    idx = idx[np.argsort(dist, kind="stable")]
+    changed = True
+    while changed:
+        changed = False
+        for v in idx:
+            i, j, k = v
+            if not cut[i, j, k]:
+                continue
+            block = kept[i - 1:i + 2, j - 1:j + 2, k - 1:k + 2]
+            if _link_chi(block) == 1 and _link_chi(~block) == 1:
+                kept[i, j, k] = True
+                cut[i, j, k] = False
+                changed = True
+    return cut
+
+
+def _plug_tunnels(L: np.ndarray, k: int, vox, max_r: int, kept: np.ndarray | None,
+                  fixed: np.ndarray | None = None) -> tuple[int, int]:
+    """Make solid k = {1 <= L <= k} genus 0 in place: plug its tunnels, else cut its handles.
+
+    Returns (pieces added, pieces cut).
+
+    Plugs: closings of radius 1..max_r voxels (in mm: r * the largest voxel edge, a ball) propose
+    voxels; each 26-connected piece is added (as label k) only if it raises the Euler
+    characteristic of the solid plus that of its complement (both diagonal conventions of
+    :func:`_genus`), computed on the piece's bounding box grown by 2 voxels: every cell a piece
+    adds or removes lies within one voxel of it, so the difference there is the difference of the
+    whole grid.
+
+    Cuts, for the handles no closing up to max_r plugs (a bar of the solid over an opening wider
+    than 2 max_r voxels: thin bony bars of the face and skull base in the skull solid of a real
+    head, a bridge of scalp over a wide crater of a fragmented segmentation): the dual, openings
+    of radius 1..max_r propose voxels to remove from the solid, only voxels of the solid's own
+    shell tissue outside `fixed` (the inner solid's nesting and thickness band, which rules 5
+    and 6 would grow back), and a piece is removed (relabelled k + 1, background for the head)
+    only if it raises the same Euler sum while the solid stays one face-connected component
+    without cavities, i.e. exactly when it lowers the genus; only one cross-section of the piece
+    is cut (:func:`_thin_cut`), widened to the opening's diameter (2 r + 1 voxels), so the gap is
+    as wide as the bar was thin. Filling stays first: it seals a
+    channel through a shell (what matters for current flow), where a cut would open one, and
+    its results are those of the rule before cuts existed.
+    This is the multiscale morphological topology correction of Han, Xu, Tosun & Prince (2002,
+    IEEE TMI 21:109), foreground and background, with plugs preferred to cuts.
     """
     solid = (L >= 1) & (L <= k)
     if k == 1 and kept is not None:
         solid = solid | kept
     if _genus(solid) == 0:
-        return 0
-    n_added = 0
-    for r in range(1, max_r + 1):
-        st = ball(r * float(np.max(vox)), vox)
-        cand = _close(solid, st) & ~solid
-        lab, n = ndi.label(cand, structure=_CUBE)
-        for i, sl in enumerate(ndi.find_objects(lab), start=1):
-            if sl is None:
-                continue
-            win = tuple(slice(max(a.start - 2, 0), min(a.stop + 2, m)) for a, m in zip(sl, L.shape))
-            piece = lab[win] == i
+        return 0, 0
+    n_added = n_cut = 0
+    radii = [ball(r * float(np.max(vox)), vox) for r in range(1, max_r + 1)]
+    for st in radii:
+        for win, piece in _pieces(_close(solid, st) & ~solid, L.shape):
             sub = solid[win]
-            gain = (euler_characteristic(sub | piece) - euler_characteristic(sub)
-                    + euler_characteristic(~(sub | piece)) - euler_characteristic(~sub))
-            if gain > 0:
+            if _euler_gain(sub, sub | piece) > 0:
                 solid[win] |= piece
                 L[win][piece] = k
                 n_added += 1
         if _genus(solid) == 0:
+            return n_added, n_cut
+    movable = L == k
+    if fixed is not None:
+        movable &= ~fixed
+    for st in radii:
+        opened = _dilate(_erode(solid, st), st)
+        for win, piece in _pieces(solid & ~opened & movable, L.shape):
+            piece &= solid[win]
+            sub = solid[win]
+            if not piece.any() or _euler_gain(sub, sub & ~piece) <= 0:
+                continue
+            # one cross-section, widened to the opening's diameter: a one-voxel slit is as
+            # narrow as the tunnels this rule removes, and would knot the surface the same way
+            piece = _dilate(_thin_cut(sub, piece), st) & piece
+            if _euler_gain(sub, sub & ~piece) <= 0:
+                continue
+            trial = solid.copy()
+            trial[win] &= ~piece
+            if ndi.label(trial, structure=_CROSS)[1] != 1 or _holes(trial).any():
+                continue
+            solid = trial
+            L[win][piece] = k + 1 if k < 4 else 0
+            n_cut += 1
+        if _genus(solid) == 0:
             break
-    return n_added
+    return n_added, n_cut
 
 
 def _pad_to(st: np.ndarray, shape) -> np.ndarray:
@@ -680,13 +806,21 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
 
     genus_before = {Tissue(k): _genus(solid(k)) for k in (1, 2, 3, 4)}
     plugged = {t: 0 for t in TISSUES}
+    cut = {t: 0 for t in TISSUES}
+    # a shell's voxels within its nesting (3x3x3) and thickness band of the inner solid are never
+    # cut from it: rules 5 and 6 would grow them back
+    band = {t: _pad_to(ball(thick[t], vox), (3, 3, 3)) | _pad_to(_CUBE, ball(thick[t], vox).shape)
+            for t in _SHELLS}
 
     def tunnels() -> bool:
         if cfg.tunnels != "plug":
             return False
         prev_t = L.copy()
         for k in (4, 3, 2, 1):
-            plugged[Tissue(k)] += _plug_tunnels(L, k, vox, cfg.max_tunnel_voxels, kept)
+            fixed = _dilate(solid(k - 1), band[Tissue(k)]) if k > 1 else None
+            n_plug, n_cut = _plug_tunnels(L, k, vox, cfg.max_tunnel_voxels, kept, fixed)
+            plugged[Tissue(k)] += n_plug
+            cut[Tissue(k)] += n_cut
         if np.array_equal(prev_t, L):
             return False
         _fill_and_connect(L, ledger, kept)
@@ -774,6 +908,10 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
     else:
         n_kept = 0
     genus_after = {Tissue(k): _genus(solid(k)) for k in (1, 2, 3, 4)}
+    left = {t.name: g for t, g in genus_after.items() if g}
+    if left and cfg.tunnels == "plug":
+        log.warning("make_layers: handles kept (wider than max_tunnel_voxels=%d voxels to plug or "
+                    "cut): %s", cfg.max_tunnel_voxels, ", ".join(f"{k} genus {g}" for k, g in left.items()))
     layers = LabelMap(out, affine)
     report = LayerReport(
         shape=tuple(int(s) for s in labels.shape),
@@ -789,6 +927,7 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
         fov_cuts=tuple(faces),
         padding=padding,
         tunnels_plugged=dict(plugged),
+        handles_cut=dict(cut),
         genus_before=genus_before,
         genus_after=genus_after,
     )
