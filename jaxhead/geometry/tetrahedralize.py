@@ -589,6 +589,10 @@ def region_seeds(surfs) -> np.ndarray:
     return np.array(out)
 
 
+#: Restarts of the improvement step while tets stay outside the Table-2 limits (see the mesh stage).
+_IMPROVE_RESTARTS = 3
+
+
 def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -> tuple[TetMesh, MeshReport]:
     """Nested four-tissue tetrahedral mesh from the four nested surfaces, with a report.
 
@@ -716,8 +720,25 @@ def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -
     if cfg.improve != "none":
 
         t0 = time.perf_counter()
+        project = [d.project for d in dists]
         nodes, tets, labels, improvement = improve_mesh(
-            nodes, tets, labels, [d.project for d in dists], iterations=cfg.improve_iterations)
+            nodes, tets, labels, project, iterations=cfg.improve_iterations)
+        # The step stops after a few cycles without progress; a tet it leaves below the Table-2
+        # limits is usually locked by its neighbours' order of treatment. Restart it (other
+        # random priorities, more cycles) at most _IMPROVE_RESTARTS times; each restart keeps
+        # its best state, so it never ends worse. Counted in the report, not silent.
+        restarts = 0
+        while improvement["below_0.2_after"] and restarts < _IMPROVE_RESTARTS:
+            restarts += 1
+            nodes, tets, labels, again = improve_mesh(
+                nodes, tets, labels, project, iterations=cfg.improve_iterations,
+                seed=restarts, flip_cycles=12)
+            for k in ("nodes_moved", "rounds", "flips_2_3", "flips_3_2", "nodes_inserted",
+                      "edges_split"):
+                improvement[k] += again[k]
+            improvement["below_0.2_after"] = again["below_0.2_after"]
+            improvement["min_quality_after"] = again["min_quality_after"]
+        improvement["restarts"] = restarts
         seconds["improve"] = time.perf_counter() - t0
 
     mesh = TetMesh(nodes, tets, labels)
