@@ -234,7 +234,7 @@ def _flip_pass(nodes, tets, labels, q, target):
     nbr[fi], nbr[fj] = owner[fj], owner[fi]
     nbr = nbr.reshape(m, 4)  # neighbour across face k (the face opposite corner k)
     poor = np.nonzero(q < target)[0]
-    old_sets, new_sets, old_q, kinds = [], [], [], []
+    old_sets, new_sets, kinds = [], [], []
 
     # 2-3 flips through each face of each poor tet.
     t = np.repeat(poor, 4)
