@@ -412,3 +412,14 @@ def test_flat_tet_at_interface_takes_its_neighbours_side():
     # Without the envelope (a surface known exactly), the centroid decides: CSF.
     labels0, n0, _ = label_tets(nodes, tets, surfs, dists, 1e-6)
     assert labels0[0] == int(Tissue.CSF) and n0 == 0
+
+
+def test_ftetwild_leaves_the_working_directory_clean(tmp_path, monkeypatch):
+    """fTetWild writes "__tracked_surface.stl" into the working directory; the user's folder stays clean."""
+    pytest.importorskip("pytetwild")
+    monkeypatch.chdir(tmp_path)
+    V, F = _sphere(10.0, subdiv=2)
+    nodes, tets = T._pytetwild(V, F.astype(np.int32), edge_length_abs=5.0, epsilon=1e-2,
+                               optimize=False, quiet=True, num_threads=1)
+    assert len(tets) > 0
+    assert list(tmp_path.iterdir()) == []

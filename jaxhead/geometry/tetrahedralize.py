@@ -18,9 +18,11 @@ circumcentre insertion and edge splits inside one tissue) with every interface n
 interface.
 """
 
+import contextlib
 import importlib.util
 import logging
 import math
+import tempfile
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -516,10 +518,18 @@ def _interface_deviation(nodes, tets, labels, dists) -> dict[Tissue, float]:
     return out
 
 
-def _run_ftetwild(V, F, *, edge_mm, envelope_mm, cfg: MeshConfig, bg, what: str):
-    """fTetWild (pytetwild) on one merged surface soup; returns (nodes, positive tets)."""
+def _pytetwild(V, F, **kw):
+    """`pytetwild.tetrahedralize` run in a scratch folder: fTetWild writes "__tracked_surface.stl" (about
+    1 MB) into the working directory, which is the user's. (The chdir is process-wide: do not call this
+    from two threads at once.)"""
     import pytetwild
 
+    with tempfile.TemporaryDirectory(prefix="jaxhead-ftetwild-") as scratch, contextlib.chdir(scratch):
+        return pytetwild.tetrahedralize(V, F, **kw)
+
+
+def _run_ftetwild(V, F, *, edge_mm, envelope_mm, cfg: MeshConfig, bg, what: str):
+    """fTetWild (pytetwild) on one merged surface soup; returns (nodes, positive tets)."""
     diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
     kw = dict(edge_length_abs=float(edge_mm), epsilon=float(envelope_mm / diag),
               stop_energy=float(cfg.stop_energy), num_opt_iter=int(cfg.max_opt_iterations),
@@ -527,8 +537,8 @@ def _run_ftetwild(V, F, *, edge_mm, envelope_mm, cfg: MeshConfig, bg, what: str)
     if bg is not None:
         kw.update(bg_vertices=bg[0], bg_tets=bg[1], bg_values=bg[2])
     try:
-        nodes, tets = pytetwild.tetrahedralize(np.ascontiguousarray(V, dtype=np.float64),
-                                               np.ascontiguousarray(F, dtype=np.int32), **kw)
+        nodes, tets = _pytetwild(np.ascontiguousarray(V, dtype=np.float64),
+                                 np.ascontiguousarray(F, dtype=np.int32), **kw)
     except Exception as e:  # the C++ side raises RuntimeError (or others) with its own message
         raise RuntimeError(f"fTetWild failed on {what}: {type(e).__name__}: {e}") from e
     nodes = np.asarray(nodes, dtype=np.float64)
@@ -543,10 +553,8 @@ def _diagnose_failure(surfs, envelope_mm, cfg) -> str:
     bad = []
     for (V, F), t in zip(surfs, TISSUES):
         try:
-            import pytetwild
-
             diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
-            nodes, tets = pytetwild.tetrahedralize(
+            nodes, tets = _pytetwild(
                 V, F.astype(np.int32), edge_length_abs=diag / 10, epsilon=envelope_mm / diag,
                 optimize=False, quiet=True, num_threads=int(cfg.threads))
             ok = len(tets) > 0 and abs(np.abs(signed_volumes(nodes, tets)).sum() / enclosed_volume(V, F) - 1) < 0.2
