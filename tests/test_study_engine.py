@@ -199,7 +199,7 @@ def test_bad_perturbations_are_one_clear_error(pert, match):
 
 
 def test_unknown_keys_and_remesh_without_labels(tmp_path):
-    with pytest.raises(ValueError, match="unknown key 'sampels'.*did you mean 'samples'"):
+    with pytest.raises(ValueError, match=r"unknown key `sampels` in \[study.perturbations\[0\]\]. Did you mean `samples`"):
         study_config_from_dict({"perturbations": [{"kind": "grf", "tissue": "csf",
                                                    "amplitude": 1, "sampels": 2}]})
     d = base()

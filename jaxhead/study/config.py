@@ -18,7 +18,7 @@ from typing import Literal
 
 import numpy as np
 
-from .._tables import fields_from_dict
+from .._tables import fields_from_dict, from_dict
 from ..segmentation import RegisterConfig, SegmentConfig
 from ..tissue import DEFAULT_SIGMA_S_M, TISSUE_NAMES, Tissue
 from .measures import MeasureConfig
@@ -345,35 +345,10 @@ class StudyConfig:
         return hashlib.sha256(s.encode()).hexdigest()[:16]
 
 
-def _build(cls, data: dict, where: str):
-    if not isinstance(data, dict):
-        raise ValueError(f"{where} must be a table, got {type(data).__name__}.")
-    names = {f.name for f in dataclasses.fields(cls)}
-    for k in data:
-        if k not in names:
-            raise ValueError(f"{where} has unknown key {k!r}{_closest(k, names)}; valid keys: "
-                             f"{sorted(names)}.")
-    kw = dict(data)
-    if "blob_centre_mm" in kw and kw["blob_centre_mm"] is not None:
-        kw["blob_centre_mm"] = tuple(float(x) for x in kw["blob_centre_mm"])
-    return cls(**kw)
-
-
 def study_config_from_dict(d: dict) -> StudyConfig:
-    """A StudyConfig from the `[study]` table's dict (as TOML parses it)."""
-    d = dict(d)
-    top = {f.name for f in dataclasses.fields(StudyConfig)}
-    for k in d:
-        if k not in top:
-            raise ValueError(f"[study] has unknown key {k!r}{_closest(k, top)}; valid keys: "
-                             f"{sorted(top)}.")
-    if "reference" in d:
-        d["reference"] = _build(ReferenceConfig, d["reference"], "[study.reference]")
-    if "measures" in d:
-        d["measures"] = _build(MeasureConfig, d["measures"], "[study.measures]")
-    d["perturbations"] = tuple(_build(PerturbationConfig, p, "[[study.perturbations]]")
-                               for p in d.get("perturbations", ()))
-    return StudyConfig(**d)
+    """A StudyConfig from the `[study]` table's dict (as TOML parses it): every table typed and checked
+    by `jaxhead._tables` (unknown keys named with the closest valid one), the same way as run configs."""
+    return from_dict(StudyConfig, d, "study")
 
 
 def load_study_config(path) -> StudyConfig:
