@@ -13,7 +13,9 @@ degree <= d without the constant (the means absorb it). Iterations:
 
 - E-step: posteriors with the prior multiplied by the mean-field Potts term exp(beta * sum of the
   neighbours' posteriors) and renormalised (Van Leemput et al. 1999; see mrf.py).
-- M-step: weighted means, variances and within-class weights; then the bias coefficients by weighted
+- M-step: weighted means, variances and within-class weights (maximum likelihood, or with
+  `weight_prior` > 0 the MAP under a Dirichlet prior that keeps every free Gaussian of a class from
+  being emptied: `map_weights`; Ormoneit & Tresp 1998); then the bias coefficients by weighted
   least squares with weights W_i = sum_j r_ij / v_j over the head's Gaussians (Van Leemput 1999,
   eq. 6; Wells 1996).
 - Prior relaxation (Cardoso et al. 2011, NeuroImage 56:1386; NiftySeg seg_EM -rf): once the EM with
