@@ -139,6 +139,10 @@ def test_segment_config_per_tissue_gaussians():
     with pytest.raises(ValueError, match="partial_volume"):
         SegmentConfig(partial_volume="yes")
     assert dataclasses.replace(cfg, beta=0.0).beta == 0.0
+    # the within-class weight prior: modality default (maximum likelihood) unless given
+    assert opts.weight_prior == 0.0 and SegmentConfig(weight_prior=0.2).em_options(1.0).weight_prior == 0.2
+    with pytest.raises(ValueError, match="weight_prior"):
+        SegmentConfig(weight_prior=-0.1)
 
 
 

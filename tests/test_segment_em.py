@@ -208,6 +208,7 @@ def test_jit_equals_eager_and_float32_path():
         (dict(component_class=(0, 1), n_classes=2, pv_of=(-1,)), "one entry per Gaussian"),
         (dict(component_class=(0, 1), n_classes=2, pv_of=(-1, 1)), "another class"),
         (dict(component_class=(0, 1, 1), n_classes=2, pv_of=(-1, 0, 0)), "only partial-volume"),
+        (dict(component_class=(0, 1), n_classes=2, weight_prior=-0.1), "weight_prior"),
     ],
 )
 def test_em_options_validation(kw, match):
@@ -271,3 +272,57 @@ def test_partial_volume_voxels_go_to_the_majority_tissue():
     # (f near 1/2 is ambiguous under the noise and texture), so ~85-90 % rather than 100 %
     assert tied > 0.85 and tied_pure > 0.99, (tied, tied_pure)
     assert free < 0.7 and tied > free + 0.2, (tied, free)
+
+
+def test_map_weights_closed_form_and_constrained_maximum():
+    # classes 0 (two free Gaussians), 1 (one free, one tied partial-volume), 2 (one free)
+    from scipy.optimize import minimize
+
+    from jaxhead.segmentation.em import map_weights
+
+    opts = EMOptions(component_class=(0, 0, 1, 1, 2), n_classes=3, pv_of=(-1, -1, -1, 0, -1), weight_prior=0.25)
+    n = np.array([90.0, 2.0, 30.0, 0.5, 7.0])
+    w = np.asarray(map_weights(jnp.asarray(n), opts))
+    # closed form: pseudo-counts eta * N_k / F_k on the free Gaussians only
+    eta = 0.25
+    ref = np.array([(90 + eta * 92 / 2) / (1.25 * 92), (2 + eta * 92 / 2) / (1.25 * 92),
+                    (30 + eta * 30.5) / (1.25 * 30.5), 0.5 / (1.25 * 30.5), 1.0])
+    np.testing.assert_allclose(w, ref, rtol=1e-12)
+    np.testing.assert_allclose([w[:2].sum(), w[2:4].sum()], 1.0, rtol=1e-12)
+    assert w[1] >= eta / ((1 + eta) * 2) - 1e-15  # the stated lower bound for a free Gaussian
+    # independently: the maximiser of sum_j (n_j + a_j) log w_j on each class's simplex
+    for g, a in (([0, 1], [eta * 92 / 2] * 2), ([2, 3], [eta * 30.5, 0.0])):
+        c = n[g] + np.array(a)
+        res = minimize(lambda v: -(c * np.log(v)).sum(), np.full(2, 0.5), method="SLSQP", bounds=[(1e-9, 1)] * 2,
+                       constraints={"type": "eq", "fun": lambda v: v.sum() - 1}, options={"ftol": 1e-14})
+        np.testing.assert_allclose(w[g], res.x, atol=1e-6)
+    # eta = 0 is maximum likelihood, n_j / N_k
+    ml = np.asarray(map_weights(jnp.asarray(n), EMOptions(component_class=(0, 0, 1, 1, 2), n_classes=3,
+                                                          pv_of=(-1, -1, -1, 0, -1))))
+    np.testing.assert_allclose(ml, [90 / 92, 2 / 92, 30 / 30.5, 0.5 / 30.5, 1.0], rtol=1e-12)
+
+
+def test_weight_prior_keeps_a_squeezed_tissue_gaussian_from_collapsing():
+    # Class B has two tissues: B1 (10 +- 3) only where the atlas is undecided (prior 0.5), and B2
+    # (100 +- 10) where it is sure; class A (14 +- 6) overlaps B1. Maximum likelihood empties B1's
+    # Gaussian (its share of the undecided voxels shrinks with its weight, which shrinks with its
+    # share: w -> 0, its variance to a spike); the Dirichlet prior keeps its weight above
+    # eta / ((1 + eta) F) and the Gaussian on B1's intensities.
+    rng = np.random.default_rng(0)
+    x = np.broadcast_to((np.arange(SHAPE[0])[:, None, None] + 0.5) / SHAPE[0], SHAPE)
+    region = np.where(x < 0.4, 0, np.where(x < 0.55, 2, 1))  # 0: A, 2: undecided (B1), 1: B2
+    y = np.where(region == 0, rng.normal(14, 6, SHAPE),
+                 np.where(region == 2, rng.normal(10, 3, SHAPE), rng.normal(100, 10, SHAPE)))
+    pb = np.where(region == 0, 0.1, np.where(region == 2, 0.5, 0.9))
+    prior = jnp.asarray(np.stack([1 - pb, pb]))
+    init = MixtureParams(jnp.array([14.0, 10.0, 100.0]), jnp.array([36.0, 9.0, 100.0]), jnp.array([1.0, 0.25, 0.75]),
+                         jnp.zeros(0))
+
+    def fit(eta):
+        opts = EMOptions(component_class=(0, 1, 1), n_classes=2, max_iter=500, tol=1e-10, weight_prior=eta)
+        return fit_mixture(jnp.asarray(y), prior, opts, init).params
+
+    ml, mp = fit(0.0), fit(0.1)
+    assert float(ml.weights[1]) < 1e-3, ml.weights  # collapsed without the prior
+    assert float(mp.weights[1]) >= 0.1 / (1.1 * 2), mp.weights
+    assert abs(float(mp.means[1]) - 10.0) < 3.0 and float(mp.variances[1]) > 0.5, (mp.means, mp.variances)

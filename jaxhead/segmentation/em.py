@@ -13,7 +13,9 @@ degree <= d without the constant (the means absorb it). Iterations:
 
 - E-step: posteriors with the prior multiplied by the mean-field Potts term exp(beta * sum of the
   neighbours' posteriors) and renormalised (Van Leemput et al. 1999; see mrf.py).
-- M-step: weighted means, variances and within-class weights; then the bias coefficients by weighted
+- M-step: weighted means, variances and within-class weights (maximum likelihood, or with
+  `weight_prior` > 0 the MAP under a Dirichlet prior that keeps every free Gaussian of a class from
+  being emptied: `map_weights`; Ormoneit & Tresp 1998); then the bias coefficients by weighted
   least squares with weights W_i = sum_j r_ij / v_j over the head's Gaussians (Van Leemput 1999,
   eq. 6; Wells 1996).
 - Prior relaxation (Cardoso et al. 2011, NeuroImage 56:1386; NiftySeg seg_EM -rf): once the EM with
@@ -81,6 +83,10 @@ class EMOptions:
             mixture with: a tied Gaussian of the half of the mixing line nearer its own class
             (see the module docstring). Empty: all free.
         pv_log: the data are log intensities (partial-volume mixing is done on exp(y)).
+        weight_prior: eta >= 0 of the Dirichlet prior on each class's within-class weights (MAP
+            instead of maximum likelihood; see `map_weights`): pseudo-counts eta * N_k / F_k on each
+            of class k's F_k free Gaussians, N_k the class's soft voxel count, so that no free
+            Gaussian's weight falls below eta / ((1 + eta) F_k). 0 = maximum likelihood.
     """
 
     component_class: tuple[int, ...]
@@ -98,6 +104,7 @@ class EMOptions:
     prior_floor: float = 1e-4
     pv_of: tuple[int, ...] = ()
     pv_log: bool = False
+    weight_prior: float = 0.0
 
     def __post_init__(self):
         cc = tuple(self.component_class)
@@ -129,6 +136,8 @@ class EMOptions:
             raise ValueError(f"`beta` must be >= 0, got {self.beta}.")
         if self.bias_degree < 0:
             raise ValueError(f"`bias_degree` must be >= 0, got {self.bias_degree}.")
+        if not self.weight_prior >= 0:
+            raise ValueError(f"`weight_prior` must be >= 0 (0 = maximum likelihood), got {self.weight_prior}.")
         if self.max_iter < 1 or self.min_iter < 0:
             raise ValueError(f"`max_iter` must be >= 1 and `min_iter` >= 0, got {self.max_iter}, {self.min_iter}.")
 
@@ -362,11 +371,46 @@ def _m_step(y, r, mu_old, opts: EMOptions, var_floor):
     shift = s1 / n
     mu = mu_old + shift
     var = jnp.maximum(s2 / n - shift**2, var_floor)
+    return mu, var, map_weights(n, opts)
+
+
+def map_weights(counts, opts: EMOptions):
+    """Within-class weights from soft counts: maximum likelihood, or MAP under a Dirichlet prior.
+
+    Class k owns Gaussians G_k, F_k of them free (`EMOptions.is_free`), with soft counts n_j
+    (sum over voxels of the responsibilities) and N_k = sum_{j in G_k} n_j. With a Dirichlet(alpha)
+    prior on the class's weights, the M-step maximises sum_j (n_j + alpha_j - 1) log w_j subject to
+    sum_j w_j = 1, whose solution is w_j = (n_j + a_j) / (N_k + sum_i a_i), a_j = alpha_j - 1
+    (Ormoneit & Tresp 1998, IEEE TNN 9:639, eq. 9; Bishop 2006, PRML section 2.2.1). Here
+    a_j = eta * N_k / F_k for a free Gaussian and 0 for a tied partial-volume one, eta =
+    `opts.weight_prior`:
+
+        w_j = (n_j + eta N_k / F_k [j free]) / ((1 + eta) N_k),
+
+    a prior worth eta times the class's own voxels, shared equally among its free Gaussians (scaled
+    with N_k, so it means the same at any voxel size and for any class size). It keeps each free
+    Gaussian's weight >= eta / ((1 + eta) F_k): a pure tissue Gaussian cannot be emptied by a
+    broad neighbour (a partial-volume tail, another class's overlapping tissue) taking its voxels
+    one iteration at a time, the positive feedback through w_j that makes such a component collapse
+    in maximum likelihood. The assumption: each free Gaussian of a class stands for a tissue the
+    scan contains (DEFAULT_GAUSSIANS in segment.py); a partial-volume Gaussian may be empty.
+    eta = 0 is maximum likelihood (w_j = n_j / N_k).
+
+    Arguments:
+        counts: (J,) soft counts n_j (> 0).
+        opts: EMOptions (its groups, free Gaussians and weight_prior).
+    Returns:
+        (J,) weights, summing to 1 over each class's Gaussians.
+    """
+    eta = opts.weight_prior
     w = []
     for g in opts.groups:
-        tot = functools.reduce(jnp.add, [n[j] for j in g])
-        w.extend(n[j] / tot for j in g)
-    return mu, var, jnp.stack(w)
+        tot = functools.reduce(jnp.add, [counts[j] for j in g])
+        n_free = sum(opts.is_free(j) for j in g)
+        for j in g:
+            a = eta * tot / n_free if opts.is_free(j) else 0.0
+            w.append((counts[j] + a) / ((1.0 + eta) * tot))
+    return jnp.stack(w)
 
 
 def _tie_partial_volume(mu, var, opts: EMOptions, c, s):
