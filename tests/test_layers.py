@@ -13,6 +13,7 @@ from jaxhead.volume import LabelMap, default_affine
 
 VOX = 3.0
 CUBE = np.ones((3, 3, 3), dtype=bool)
+FACE = ndi.generate_binary_structure(3, 1)
 NO_CLOSING = LayerConfig(closing_radius_mm=0.0)
 
 
@@ -36,11 +37,12 @@ def solids(L):
     return {k: (L >= 1) & (L <= k) for k in (1, 2, 3, 4)}
 
 
-def assert_strictly_nested(L):
-    """Independent check: each solid's 3x3x3 dilation lies inside the next (the paper's rule)."""
+def assert_strictly_nested(L, structure=FACE):
+    """Independent check: each solid's dilation by `structure` (face neighbours, the default
+    rule; CUBE for the paper's 3x3x3 rule) lies inside the next."""
     S = solids(L)
     for k in (1, 2, 3):
-        dil = ndi.binary_dilation(S[k], CUBE)
+        dil = ndi.binary_dilation(S[k], structure)
         assert not (dil & ~S[k + 1]).any(), f"solid {k} touches outside solid {k + 1}"
 
 
@@ -155,8 +157,8 @@ def test_closing_seals_skull_pinhole():
 
 
 def test_thin_csf_erodes_brain():
-    # brain 24 mm, CSF 27 mm: one voxel of CSF (thinner than the 3x3x3 rule wants), plus a
-    # patch where the brain touches the skull directly
+    # brain 24 mm, CSF 27 mm: one voxel of CSF (enough for the face rule, thinner than the
+    # 3x3x3 rule wants), plus a 3x3x3 patch of brain whose outer face touches the skull
     L, aff, r = spheres(radii=(24.0, 27.0, 39.0, 48.0))
     c = L.shape[0] // 2
     L[c + 7:c + 10, c - 1:c + 2, c - 1:c + 2] = 1
@@ -164,8 +166,36 @@ def test_thin_csf_erodes_brain():
     assert_strictly_nested(out.labels)
     ch = rep.changes["nesting"]
     assert set(ch) == {(Tissue.BRAIN, Tissue.CSF)}  # the paper: erode the brain
-    assert ch[(Tissue.BRAIN, Tissue.CSF)] > 9
+    assert ch[(Tissue.BRAIN, Tissue.CSF)] == 9  # the patch's outer face
     assert_counts_add_up(L, out.labels, rep)
+    cube, rep_c = make_layers_reported(LabelMap(L, aff), LayerConfig(closing_radius_mm=0.0, nesting="cube"))
+    assert_strictly_nested(cube.labels, CUBE)
+    assert rep_c.changes["nesting"][(Tissue.BRAIN, Tissue.CSF)] > 9
+
+
+def test_face_nesting_keeps_brain_that_is_only_diagonal_to_the_skull():
+    """The default nesting rule moves only the brain voxels with a face neighbour outside the CSF
+    solid; the paper's 3x3x3 rule (nesting="cube") also takes those whose skull contact is
+    diagonal, which on a one-voxel CSF shell is most of the CSF it adds (found independently
+    here from the input)."""
+    L, aff, r = spheres(radii=(24.0, 27.0, 39.0, 48.0))
+    c = L.shape[0] // 2
+    L[c + 7:c + 10, c - 1:c + 2, c - 1:c + 2] = 1  # a patch of brain on the skull
+    S = solids(L)
+    face_hit = S[1] & ndi.binary_dilation(~S[2], FACE)
+    diag_only = S[1] & ndi.binary_dilation(~S[2], CUBE) & ~face_hit
+    assert face_hit.sum() > 0 and diag_only.sum() > face_hit.sum()
+    out, rep = make_layers_reported(LabelMap(L, aff), NO_CLOSING)
+    assert_strictly_nested(out.labels)
+    assert rep.changes["nesting"] == {(Tissue.BRAIN, Tissue.CSF): int(face_hit.sum())}
+    assert (out.labels[face_hit] == 2).all() and (out.labels[diag_only] == 1).all()
+    assert_counts_add_up(L, out.labels, rep)
+    cube, rep_c = make_layers_reported(LabelMap(L, aff), LayerConfig(closing_radius_mm=0.0, nesting="cube"))
+    assert_strictly_nested(cube.labels, CUBE)
+    assert (cube.labels[face_hit | diag_only] == 2).all()
+    assert rep_c.net_change(Tissue.CSF) >= rep.net_change(Tissue.CSF) + diag_only.sum()
+    with pytest.raises(ValueError, match="nesting.*'face'.*'cube'"):
+        LayerConfig(nesting="26")
 
 
 def test_min_thickness_in_mm_with_anisotropic_voxels():

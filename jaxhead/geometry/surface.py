@@ -564,14 +564,16 @@ def _solid_masks(labels: np.ndarray) -> dict[Tissue, tuple[np.ndarray, int]]:
 
 
 def _nesting_violations(labels: np.ndarray) -> dict[Tissue, int]:
-    """Voxels outside each shell's outer solid within the 26-neighbourhood of its inner solid."""
+    """Voxels outside each shell's outer solid that are face neighbours of its inner solid (no
+    grid edge may join a solid to the outside of the next one: the marching-cubes surfaces would
+    share a vertex there)."""
     out = {}
-    cube = np.ones((3, 3, 3), dtype=bool)
+    face = ndi.generate_binary_structure(3, 1)
     for k, t in ((1, Tissue.CSF), (2, Tissue.SKULL), (3, Tissue.SCALP)):
         inner = (labels >= 1) & (labels <= k)
         sl = _crop(inner, 2)
         outside = ~((labels[sl] >= 1) & (labels[sl] <= k + 1))
-        out[t] = int((ndi.binary_dilation(inner[sl], cube) & outside).sum())
+        out[t] = int((ndi.binary_dilation(inner[sl], face) & outside).sum())
     return out
 
 
@@ -896,7 +898,7 @@ def extract_surfaces_reported(layers: LabelMap, cfg: SurfaceConfig = SurfaceConf
 
     Arguments:
         layers: label map with strictly nested layers (the output of ``make_layers``): every
-            BRAIN voxel's 26 neighbours in BRAIN/CSF, and so on out; background on the border.
+            BRAIN voxel's face neighbours in BRAIN/CSF, and so on out; background on the border.
         cfg: the surface settings.
     Returns:
         ({Tissue: Surface} for BRAIN, CSF, SKULL, SCALP in world mm, SurfaceReport).
