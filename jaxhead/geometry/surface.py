@@ -19,7 +19,10 @@ head), the seed paper's marching cubes + MeshLab steps (Vonach et al. 2012) done
 5. ``gap``: surfaces are pulled apart to ``min_gap_mm`` outside in (SKULL inside SCALP, CSF inside
    SKULL, BRAIN inside CSF) by moving offending vertices of the inner surface inward along their
    normals (signed distances by AABB tree and fast winding number, gpytoolbox); the outer surface
-   never moves. The gap is then checked exactly (triangle-triangle distances, manifold3d).
+   never moves. The gap is then checked exactly (triangle-triangle distances, manifold3d); where
+   it is short although every vertex is clear (a ridge of one surface under the middle of a
+   face of the other), the step is repeated with denser samples on the faces near the other
+   surface (``gap_sample_density`` in the report).
 6. ``checks``: every surface is watertight and edge- and vertex-manifold, consistently outward
    (positive volume), one component, without self-intersections (:func:`self_intersections`), and
    nested with the gap (:func:`surface_gap_mm`). Failure raises ValueError naming the tissue.
