@@ -198,6 +198,37 @@ def test_face_nesting_keeps_brain_that_is_only_diagonal_to_the_skull():
         LayerConfig(nesting="26")
 
 
+def test_thin_skull_and_scalp_parts_removed():
+    """Rule ``thin``: a one-voxel rod of skull standing in the scalp becomes scalp and a one-voxel
+    scalp spike becomes background, while a rod two voxels across stays skull; the skull shell
+    itself (one to three voxels, inside the nesting band) is untouched; thin="keep" keeps both."""
+    L, aff, r = spheres()
+    c = L.shape[0] // 2
+    L[c + 11:c + 16, c, c] = 3  # a one-voxel rod from the skull (ends at 39 mm) to 45 mm
+    L[c - 16:c - 11, c:c + 2, c:c + 2] = 3  # a rod two voxels across
+    L[c, c + 16:c + 18, c] = 4  # a scalp spike into the background (the scalp ends at 48 mm)
+    rod = np.zeros(L.shape, bool)
+    rod[c + 13:c + 16, c, c] = True  # the part outside the skull sphere
+    thick = (L == 3) & (r > 39.0) & ~rod
+    spike = np.zeros(L.shape, bool)
+    spike[c, c + 16:c + 18, c] = True
+    spike &= r > 48.0
+    out, rep = make_layers_reported(LabelMap(L, aff), NO_CLOSING)
+    assert (out.labels[rod] == 4).all() and (out.labels[thick] == 3).all()
+    assert (out.labels[spike] == 0).all()
+    assert rep.changes["thin"] == {(Tissue.SKULL, Tissue.SCALP): int(rod.sum()),
+                                   (Tissue.SCALP, Tissue.BACKGROUND): int(spike.sum())}
+    shell = (L == 3) & (r <= 39.0)
+    assert (out.labels[shell] == 3).all()
+    assert_strictly_nested(out.labels)
+    assert_counts_add_up(L, out.labels, rep)
+    kept, rep_k = make_layers_reported(LabelMap(L, aff), LayerConfig(closing_radius_mm=0.0, thin="keep"))
+    assert (kept.labels[rod] == 3).all() and (kept.labels[spike] == 4).all()
+    assert rep_k.n_changed("thin") == 0
+    with pytest.raises(ValueError, match="thin"):
+        LayerConfig(thin="open")
+
+
 def test_min_thickness_in_mm_with_anisotropic_voxels():
     vox = np.array([2.0, 2.0, 3.0])
     n = (50, 50, 34)
@@ -295,8 +326,10 @@ def test_labels_out_of_range():
 def test_layer_on_border_names_tissue_and_pad():
     L, aff, _ = spheres()
     c = L.shape[0] // 2
-    L[c, c, :5] = 4  # a "neck" of scalp from the head down to the border
-    L[c, c, 0] = 3
+    # a "neck" of scalp from the head down to the border, around bone on the border (both thick
+    # enough for rule "thin": a one-voxel neck would be removed as a thin part of the head)
+    L[c - 1:c + 2, c - 1:c + 2, :5] = 4
+    L[c - 1:c + 2, c - 1:c + 2, :2] = 3
     # fov_cut="error" refuses it (the default, "close", closes it: tests/test_hard_labels.py)
     with pytest.raises(ValueError, match=r"SKULL on z=0.*fov_cut='close'.*pad_labels"):
         make_layers(LabelMap(L, aff), LayerConfig(fov_cut="error"))
@@ -307,7 +340,7 @@ def test_layer_on_border_names_tissue_and_pad():
     out, rep = make_layers_reported(LabelMap(L, aff))
     assert_strictly_nested(out.labels)
     assert [c["face"] for c in rep.fov_cuts] == ["z=0"]
-    assert rep.fov_cuts[0]["tissues"] == {"skull": 1}
+    assert rep.fov_cuts[0]["tissues"] == {"skull": 9}
     assert rep.padding[2][0] >= 2 and rep.padding[:2] == ((0, 0), (0, 0))
 
 
