@@ -31,8 +31,9 @@ does the same as explicit 3D rules, in this order, and counts every relabelled v
    segmentation) presmoothed and remeshed is a tube or sheet thinner than a millimetre, all of
    whose tet nodes lie on one surface: the tets across it cannot be shaped by moving nodes along
    the surface (the ANTs head at 2 mm kept 2-4 tets outside Table 2 there). On the ANTs head at
-   2 mm this moves 2302 skull voxels (3.6 % of its skull, with the pieces it disconnects) to scalp. The brain and CSF solids are left as they are (the
-   CSF is what EIT is most sensitive to).
+   2 mm this moves 2302 skull voxels (3.6 % of its skull, with the pieces it disconnects) to
+   scalp. The brain and CSF solids are left as they are (the CSF is what EIT is most sensitive
+   to).
 4b. ``tunnels``: each nested solid is made a topological ball (genus 0), outside in: a tunnel
    through a solid (a channel of outer tissue through the skull, a bridge of scalp over a
    groove) is a handle of its surface, which remeshing at edges wider than the tunnel collapses
