@@ -13,6 +13,7 @@ from jaxhead.volume import LabelMap, default_affine
 
 VOX = 3.0
 CUBE = np.ones((3, 3, 3), dtype=bool)
+FACE = ndi.generate_binary_structure(3, 1)
 NO_CLOSING = LayerConfig(closing_radius_mm=0.0)
 
 
@@ -36,11 +37,12 @@ def solids(L):
     return {k: (L >= 1) & (L <= k) for k in (1, 2, 3, 4)}
 
 
-def assert_strictly_nested(L):
-    """Independent check: each solid's 3x3x3 dilation lies inside the next (the paper's rule)."""
+def assert_strictly_nested(L, structure=FACE):
+    """Independent check: each solid's dilation by `structure` (face neighbours, the default
+    rule; CUBE for the paper's 3x3x3 rule) lies inside the next."""
     S = solids(L)
     for k in (1, 2, 3):
-        dil = ndi.binary_dilation(S[k], CUBE)
+        dil = ndi.binary_dilation(S[k], structure)
         assert not (dil & ~S[k + 1]).any(), f"solid {k} touches outside solid {k + 1}"
 
 
@@ -155,8 +157,8 @@ def test_closing_seals_skull_pinhole():
 
 
 def test_thin_csf_erodes_brain():
-    # brain 24 mm, CSF 27 mm: one voxel of CSF (thinner than the 3x3x3 rule wants), plus a
-    # patch where the brain touches the skull directly
+    # brain 24 mm, CSF 27 mm: one voxel of CSF (enough for the face rule, thinner than the
+    # 3x3x3 rule wants), plus a 3x3x3 patch of brain whose outer face touches the skull
     L, aff, r = spheres(radii=(24.0, 27.0, 39.0, 48.0))
     c = L.shape[0] // 2
     L[c + 7:c + 10, c - 1:c + 2, c - 1:c + 2] = 1
@@ -164,8 +166,67 @@ def test_thin_csf_erodes_brain():
     assert_strictly_nested(out.labels)
     ch = rep.changes["nesting"]
     assert set(ch) == {(Tissue.BRAIN, Tissue.CSF)}  # the paper: erode the brain
-    assert ch[(Tissue.BRAIN, Tissue.CSF)] > 9
+    assert ch[(Tissue.BRAIN, Tissue.CSF)] == 9  # the patch's outer face
     assert_counts_add_up(L, out.labels, rep)
+    cube, rep_c = make_layers_reported(LabelMap(L, aff), LayerConfig(closing_radius_mm=0.0, nesting="cube"))
+    assert_strictly_nested(cube.labels, CUBE)
+    assert rep_c.changes["nesting"][(Tissue.BRAIN, Tissue.CSF)] > 9
+
+
+def test_face_nesting_keeps_brain_that_is_only_diagonal_to_the_skull():
+    """The default nesting rule moves only the brain voxels with a face neighbour outside the CSF
+    solid; the paper's 3x3x3 rule (nesting="cube") also takes those whose skull contact is
+    diagonal, which on a one-voxel CSF shell is most of the CSF it adds (found independently
+    here from the input)."""
+    L, aff, r = spheres(radii=(24.0, 27.0, 39.0, 48.0))
+    c = L.shape[0] // 2
+    L[c + 7:c + 10, c - 1:c + 2, c - 1:c + 2] = 1  # a patch of brain on the skull
+    S = solids(L)
+    face_hit = S[1] & ndi.binary_dilation(~S[2], FACE)
+    diag_only = S[1] & ndi.binary_dilation(~S[2], CUBE) & ~face_hit
+    assert face_hit.sum() > 0 and diag_only.sum() > face_hit.sum()
+    out, rep = make_layers_reported(LabelMap(L, aff), NO_CLOSING)
+    assert_strictly_nested(out.labels)
+    assert rep.changes["nesting"] == {(Tissue.BRAIN, Tissue.CSF): int(face_hit.sum())}
+    assert (out.labels[face_hit] == 2).all() and (out.labels[diag_only] == 1).all()
+    assert_counts_add_up(L, out.labels, rep)
+    cube, rep_c = make_layers_reported(LabelMap(L, aff), LayerConfig(closing_radius_mm=0.0, nesting="cube"))
+    assert_strictly_nested(cube.labels, CUBE)
+    assert (cube.labels[face_hit | diag_only] == 2).all()
+    assert rep_c.net_change(Tissue.CSF) >= rep.net_change(Tissue.CSF) + diag_only.sum()
+    with pytest.raises(ValueError, match="nesting.*'face'.*'cube'"):
+        LayerConfig(nesting="26")
+
+
+def test_thin_skull_and_scalp_parts_removed():
+    """Rule ``thin``: a one-voxel rod of skull standing in the scalp becomes scalp and a one-voxel
+    scalp spike becomes background, while a rod two voxels across stays skull; the skull shell
+    itself (one to three voxels, inside the nesting band) is untouched; thin="keep" keeps both."""
+    L, aff, r = spheres()
+    c = L.shape[0] // 2
+    L[c + 11:c + 16, c, c] = 3  # a one-voxel rod from the skull (ends at 39 mm) to 45 mm
+    L[c - 16:c - 11, c:c + 2, c:c + 2] = 3  # a rod two voxels across
+    L[c, c + 16:c + 18, c] = 4  # a scalp spike into the background (the scalp ends at 48 mm)
+    rod = np.zeros(L.shape, bool)
+    rod[c + 13:c + 16, c, c] = True  # the part outside the skull sphere
+    thick = (L == 3) & (r > 39.0) & ~rod
+    spike = np.zeros(L.shape, bool)
+    spike[c, c + 16:c + 18, c] = True
+    spike &= r > 48.0
+    out, rep = make_layers_reported(LabelMap(L, aff), NO_CLOSING)
+    assert (out.labels[rod] == 4).all() and (out.labels[thick] == 3).all()
+    assert (out.labels[spike] == 0).all()
+    assert rep.changes["thin"] == {(Tissue.SKULL, Tissue.SCALP): int(rod.sum()),
+                                   (Tissue.SCALP, Tissue.BACKGROUND): int(spike.sum())}
+    shell = (L == 3) & (r <= 39.0)
+    assert (out.labels[shell] == 3).all()
+    assert_strictly_nested(out.labels)
+    assert_counts_add_up(L, out.labels, rep)
+    kept, rep_k = make_layers_reported(LabelMap(L, aff), LayerConfig(closing_radius_mm=0.0, thin="keep"))
+    assert (kept.labels[rod] == 3).all() and (kept.labels[spike] == 4).all()
+    assert rep_k.n_changed("thin") == 0
+    with pytest.raises(ValueError, match="thin"):
+        LayerConfig(thin="open")
 
 
 def test_min_thickness_in_mm_with_anisotropic_voxels():
@@ -265,8 +326,10 @@ def test_labels_out_of_range():
 def test_layer_on_border_names_tissue_and_pad():
     L, aff, _ = spheres()
     c = L.shape[0] // 2
-    L[c, c, :5] = 4  # a "neck" of scalp from the head down to the border
-    L[c, c, 0] = 3
+    # a "neck" of scalp from the head down to the border, around bone on the border (both thick
+    # enough for rule "thin": a one-voxel neck would be removed as a thin part of the head)
+    L[c - 1:c + 2, c - 1:c + 2, :5] = 4
+    L[c - 1:c + 2, c - 1:c + 2, :2] = 3
     # fov_cut="error" refuses it (the default, "close", closes it: tests/test_hard_labels.py)
     with pytest.raises(ValueError, match=r"SKULL on z=0.*fov_cut='close'.*pad_labels"):
         make_layers(LabelMap(L, aff), LayerConfig(fov_cut="error"))
@@ -277,7 +340,7 @@ def test_layer_on_border_names_tissue_and_pad():
     out, rep = make_layers_reported(LabelMap(L, aff))
     assert_strictly_nested(out.labels)
     assert [c["face"] for c in rep.fov_cuts] == ["z=0"]
-    assert rep.fov_cuts[0]["tissues"] == {"skull": 1}
+    assert rep.fov_cuts[0]["tissues"] == {"skull": 9}
     assert rep.padding[2][0] >= 2 and rep.padding[:2] == ((0, 0), (0, 0))
 
 

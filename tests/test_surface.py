@@ -144,6 +144,40 @@ def test_gap_enforced_by_pushing_inner_vertices():
     assert check_surface(surfaces[Tissue.BRAIN]).ok
 
 
+def _ridge_under_valley(g: float):
+    """A convex inner body whose top ridge (an edge along x at z = 5) passes g mm under the
+    valley crease (an edge along y at z = 5 + g) of a coarse outer box: every vertex of either
+    surface is more than 2.5 mm from the other surface, the surfaces only g mm apart."""
+    from scipy.spatial import ConvexHull
+    P = np.array([[-8, 0, 5], [8, 0, 5], [0, -8, -3], [0, 8, -3], [0, 0, -8]], float)
+    inner = trimesh.Trimesh(P, ConvexHull(P).simplices)
+    inner.fix_normals()
+    z = 5.0 + g
+    OV = np.array([[-12, -12, 9], [12, -12, 9], [12, 12, 9], [-12, 12, 9], [0, -12, z], [0, 12, z],
+                   [-12, -12, -12], [12, -12, -12], [12, 12, -12], [-12, 12, -12]], float)
+    OF = np.array([[0, 4, 5], [0, 5, 3], [4, 1, 2], [4, 2, 5],  # the two halves of the top
+                   [6, 7, 1], [6, 1, 4], [6, 4, 0], [9, 8, 2], [9, 2, 5], [9, 5, 3],  # front, back
+                   [7, 8, 2], [7, 2, 1], [6, 9, 3], [6, 3, 0], [6, 7, 8], [6, 8, 9]])
+    outer = trimesh.Trimesh(OV, OF)
+    outer.fix_normals()
+    return (Surface(inner.vertices, inner.faces, Tissue.BRAIN),
+            Surface(outer.vertices, outer.faces, Tissue.CSF))
+
+
+def test_gap_between_vertices_found_by_denser_samples():
+    """Two surfaces closer than the gap only between their vertices (a ridge under a valley, the
+    case that stopped the ANTs head at 2 mm): separating the vertices does nothing, the exact
+    gap stays short; the denser samples on the faces separate them to the gap."""
+    inner, outer = _ridge_under_valley(0.2)
+    assert check_surface(outer).ok and check_surface(inner).ok
+    assert surface_gap_mm(inner, outer) == pytest.approx(0.2, abs=1e-6)
+    new, n, _ = surface_module._separate(inner, outer, 0.5, 20, 5.0, density=1)
+    assert n == 0 and surface_gap_mm(new, outer) < 0.21
+    for density in surface_module._GAP_DENSITIES[1:]:
+        new, n, _ = surface_module._separate(inner, outer, 0.5, 20, 5.0, density=density)
+        assert n > 0 and surface_gap_mm(new, outer) >= 0.5, density
+
+
 def test_impossible_gap_raises_naming_tissues():
     layers = make_layers(sphere_labels(radii=(24.0, 27.0, 33.0, 38.0), flip_x=False))
     # both the SCALP (6 mm) and the SKULL (5 mm) shells are thinner than 15 mm; which is named
