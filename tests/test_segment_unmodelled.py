@@ -9,10 +9,20 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from jaxhead.segmentation import SegmentConfig, default_atlas, dice_scores, segment_reported
+from jaxhead.segmentation import (
+    SegmentConfig,
+    default_atlas,
+    dice_scores,
+    segment_reported,
+)
 from jaxhead.segmentation.atlas import Atlas, regional_proportions, with_proportions
 from jaxhead.segmentation.templates import (
-    UNMODELLED_CLASSES, ants_anatomy, mni152_anatomy, random_contrast, render, under_or_beside,
+    UNMODELLED_CLASSES,
+    ants_anatomy,
+    mni152_anatomy,
+    random_contrast,
+    render,
+    under_or_beside,
 )
 from jaxhead.tissue import Tissue
 

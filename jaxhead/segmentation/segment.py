@@ -548,6 +548,15 @@ def register_atlas(volume: Volume, atlas: Atlas, cfg: SegmentConfig = SegmentCon
     return transform, priors
 
 
+def unmodelled_on_grid(volume: Volume, atlas: Atlas, transform: Transform, cfg: SegmentConfig = SegmentConfig()):
+    """The atlas's unmodelled-bone map (`Atlas.unmodelled`) on the scan's grid through the registration
+    (scan mm -> atlas mm), in [0, 1]; None where the atlas has none. For `classify`."""
+    if atlas.unmodelled is None:
+        return None
+    u = resample(atlas.unmodelled, atlas.affine, transform, volume.shape, volume.affine, dtype=_dtype(cfg))
+    return np.clip(np.asarray(u), 0.0, 1.0)
+
+
 def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmodelled=None):
     """EM + MRF classification of a scan given priors on its grid (the second half of `segment`).
 
@@ -637,8 +646,7 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
     orientation = check_orientation(volume, atlas) if cfg.check_registration else {}
     transform, priors = register_atlas(volume, atlas, cfg)
     priors.block_until_ready()
-    unmodelled = None if atlas.unmodelled is None else np.clip(np.asarray(resample(
-        atlas.unmodelled, atlas.affine, transform, volume.shape, volume.affine, dtype=_dtype(cfg))), 0.0, 1.0)
+    unmodelled = unmodelled_on_grid(volume, atlas, transform, cfg)
     summary = {**registration_summary(volume, atlas, transform), **orientation}
     log.info("registration to the %s atlas: scales %s, rotation %.1f deg, det %.3f, NMI %.4f", atlas.name,
              np.round(summary["scales"], 3).tolist(), summary["rotation_deg"], summary["det"], summary["nmi"])
