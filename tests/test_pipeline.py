@@ -24,7 +24,8 @@ from jaxhead.run import pipeline as pipeline_module
 from jaxhead.run.config import InputConfig, InverseConfig, RunConfig
 from jaxhead.run.lock import run_lock
 from jaxhead.run.pipeline import run_pipeline
-from jaxhead.run.stages import run_quality
+from jaxhead.run.stages import run_quality, run_segment
+from jaxhead.segmentation.atlas import ATLAS_VERSION
 
 
 def _fake_stages(calls, *, random_mesh=False):
@@ -389,3 +390,31 @@ def test_quality_stage_names_the_histograms_it_leaves(tmp_path):
     assert len(named) == 7 and all((folder / p).is_file() for p in named), named
     table = (folder / "table2.txt").read_text()
     assert "Histograms: " + ", ".join(named) in table and ".tmp" not in table
+
+
+def test_a_declared_data_version_is_in_the_fingerprint(tmp_path):
+    # The segment stage builds (and caches outside the run folder) the default atlas: a new atlas
+    # recipe (ATLAS_VERSION) must rerun it on resume, where the package version stays the same.
+    cfg = _cfg(tmp_path)
+    calls = []
+    version = {"atlas": 1}
+
+    def make():
+        @stage(config=("input",), versions=dict(version))
+        def run_input(cfg, subject):
+            calls.append((subject.name, "input"))
+            (subject.dir("input") / "scan.txt").write_text("scan")
+            return {}
+        return {**_fake_stages(calls), "input": run_input}
+
+    _run(cfg, make())
+    calls.clear()
+    _run(cfg, make())
+    assert ("mri", "input") not in calls  # same version: up to date
+    version["atlas"] = 2
+    _, lines = _run(cfg, make())
+    assert ("mri", "input") in calls and any("data version atlas changed" in s for s in lines), lines
+
+
+def test_the_segment_stage_declares_the_atlas_version():
+    assert dict(run_segment.stage_spec.versions) == {"atlas": ATLAS_VERSION}

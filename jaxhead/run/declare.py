@@ -18,20 +18,26 @@ class StageSpec:
         config: the RunConfig sections the stage reads (its own included).
         reads: the earlier stages whose folders it reads, or a function of the RunConfig that
             returns them (for a stage whose source depends on the configured stages).
+        versions: (name, version) pairs of data the stage builds or reads outside the run folder
+            (e.g. the cached default atlas, `jaxhead.segmentation.atlas.ATLAS_VERSION`): a new
+            version reruns the stage.
     """
 
     config: tuple[str, ...]
     reads: tuple[str, ...] | Callable = ()
+    versions: tuple[tuple[str, int | str], ...] = ()
 
     def reads_for(self, cfg) -> tuple[str, ...]:
         return tuple(self.reads(cfg) if callable(self.reads) else self.reads)
 
 
-def stage(*, config: tuple[str, ...], reads=()):
-    """Declare what the decorated stage function `fn(cfg, subject) -> dict` reads."""
+def stage(*, config: tuple[str, ...], reads=(), versions: dict | None = None):
+    """Declare what the decorated stage function `fn(cfg, subject) -> dict` reads (`versions`: see
+    StageSpec)."""
 
     def deco(fn):
-        fn.stage_spec = StageSpec(tuple(config), reads if callable(reads) else tuple(reads))
+        fn.stage_spec = StageSpec(tuple(config), reads if callable(reads) else tuple(reads),
+                                  tuple(sorted((versions or {}).items())))
         return fn
 
     return deco

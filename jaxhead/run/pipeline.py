@@ -129,8 +129,10 @@ def fingerprint(cfg: RunConfig, subject: Subject, name: str, spec: StageSpec) ->
     inputs = {}
     for s in spec.reads_for(cfg):
         inputs.update({f"{s}/{k}": v for k, v in folder_digests(subject.root / s).items()})
-    return {"version": package_version(), "config": config, "inputs": inputs,
-            "files": _named_files(config, {})}
+    fp = {"version": package_version(), "config": config, "inputs": inputs, "files": _named_files(config, {})}
+    if spec.versions:  # only where declared: other stages' fingerprints (and done.json) stay as they were
+        fp["data_versions"] = dict(spec.versions)
+    return fp
 
 
 def _hash(fp: dict) -> str:
@@ -173,7 +175,8 @@ def why_stale(done: dict | None, fp: dict, folder: Path) -> str | None:
         return f"jaxhead version {old.get('version')} -> {fp['version']}"
     reasons = (_changes(old.get("config"), fp["config"], "config")
                + _changes(old.get("inputs"), fp["inputs"], "input")
-               + _changes(old.get("files"), fp["files"], "file"))
+               + _changes(old.get("files"), fp["files"], "file")
+               + _changes(old.get("data_versions"), fp.get("data_versions"), "data version"))
     if reasons:
         return "; ".join(reasons)
     have = folder_digests(folder)

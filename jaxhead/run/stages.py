@@ -46,6 +46,7 @@ from ..phantom import make_head
 from ..plot import plot_image_cut, plot_mesh_cut, plot_overlay, plot_scalp_potential
 from ..protocol import Protocol, load_voltages, protocol_from_config, save_voltages
 from ..segmentation import dice_scores, segment_reported
+from ..segmentation.atlas import ATLAS_VERSION
 from ..tissue import TISSUES, Tissue, sigma_per_tet
 from .config import RunConfig
 from .declare import stage
@@ -121,7 +122,7 @@ def _skipped(cfg: RunConfig, subject: Subject, name: str) -> dict | None:
     return {"skipped": why}
 
 
-@stage(config=("segment",), reads=("input",))
+@stage(config=("segment",), reads=("input",), versions={"atlas": ATLAS_VERSION})
 def run_segment(cfg: RunConfig, subject: Subject) -> dict:
     """Atlas registration + EM/MRF segmentation into brain, CSF, skull, scalp (and Dice vs truth)."""
     if (skip := _skipped(cfg, subject, "segment")) is not None:

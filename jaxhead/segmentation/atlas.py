@@ -33,7 +33,7 @@ from ..phantom import make_population
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, check_affine
 from .register import RegisterConfig, register, resample
-from .templates import atlas_sources, mni152_anatomy
+from .templates import UNMODELLED_CLASSES, atlas_sources, mni152_anatomy
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +41,9 @@ Modality = Literal["mri", "ct"]
 MODALITIES = ("mri", "ct")
 N_CLASSES = len(Tissue)
 
-#: Bump when the default atlas recipe changes (invalidates cached files).
-ATLAS_VERSION = 2
+#: Bump when the default atlas recipe changes (invalidates cached files; the segment stage's resume
+#: fingerprint includes it). 3: the unmodelled-bone map (face, skull base, neck) of the mni152 atlas.
+ATLAS_VERSION = 3
 #: Seeds of the default atlas subjects start here; keep test/evaluation subjects below it.
 DEFAULT_ATLAS_SEED = 1000
 
@@ -65,6 +66,10 @@ class Atlas(eqx.Module):
         modality: "mri" or "ct".
         n_subjects: number of examples averaged.
         name: where the atlas comes from (e.g. "mni152", "phantom"), for reports.
+        unmodelled: optional (x, y, z) in [0, 1]: where the atlas's source does not model bone (the
+            mni152 atlas: face, skull base under the cranial floor, neck); its skull and scalp
+            priors there are equal placeholders, and `segment` learns the proportion of the
+            UNMODELLED_CLASSES there from the scan (`regional_proportions`). None: nowhere.
     """
 
     template: np.ndarray
@@ -73,14 +78,16 @@ class Atlas(eqx.Module):
     modality: str = eqx.field(static=True)
     n_subjects: int = eqx.field(static=True, default=1)
     name: str = eqx.field(static=True, default="custom")
+    unmodelled: np.ndarray | None = None
 
-    def __init__(self, template, priors, affine, modality, n_subjects=1, name="custom"):
+    def __init__(self, template, priors, affine, modality, n_subjects=1, name="custom", unmodelled=None):
         self.template = np.asarray(template, dtype=np.float64)
         self.priors = np.asarray(priors, dtype=np.float32)
         self.affine = np.asarray(affine, dtype=np.float64)
         self.modality = check_modality(modality)
         self.n_subjects = int(n_subjects)
         self.name = str(name)
+        self.unmodelled = None if unmodelled is None else np.asarray(unmodelled, dtype=np.float32)
 
     def __check_init__(self):
         if self.template.ndim != 3:
@@ -102,6 +109,13 @@ class Atlas(eqx.Module):
                 f"{np.abs(s - 1).max():.3g}); normalise them with priors / priors.sum(0)."
             )
         check_affine(self.affine, "Atlas")
+        u = self.unmodelled
+        if u is not None and (u.shape != self.template.shape or not np.all(np.isfinite(u)) or u.min() < 0
+                              or u.max() > 1):
+            raise ValueError(
+                f"`Atlas.unmodelled` must be a map in [0, 1] of the template's shape {self.template.shape}, got "
+                f"shape {u.shape}" + (f", range {u.min():.3g}..{u.max():.3g}" if u.size else "") + "; or pass None."
+            )
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -115,11 +129,12 @@ class Atlas(eqx.Module):
         """Write the atlas to an .npz file atomically (`jaxhead.io.atomic_write_path`)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        extra = {} if self.unmodelled is None else {"unmodelled": self.unmodelled.astype(np.float16)}
         with atomic_write_path(path) as tmp:
             np.savez_compressed(
                 tmp, template=self.template.astype(np.float32), priors=self.priors.astype(np.float16),
                 affine=self.affine, modality=np.array(self.modality), n_subjects=np.array(self.n_subjects),
-                version=np.array(ATLAS_VERSION), name=np.array(self.name),
+                version=np.array(ATLAS_VERSION), name=np.array(self.name), **extra,
             )
         return path
 
@@ -130,7 +145,8 @@ class Atlas(eqx.Module):
             priors = z["priors"].astype(np.float32)
             priors /= priors.sum(0, keepdims=True)  # float16 storage: renormalise (|change| < 1e-3)
             name = str(z["name"]) if "name" in z else "custom"
-            return cls(z["template"], priors, z["affine"], str(z["modality"]), int(z["n_subjects"]), name)
+            u = np.clip(z["unmodelled"].astype(np.float32), 0, 1) if "unmodelled" in z else None
+            return cls(z["template"], priors, z["affine"], str(z["modality"]), int(z["n_subjects"]), name, u)
 
 
 def _one_hot(labels: np.ndarray) -> np.ndarray:
@@ -221,6 +237,53 @@ def pad_volume(volume: Volume, margin_mm: float) -> Volume:
     return Volume(data, affine)
 
 
+def regional_proportions(likelihoods, weights, *, tol: float = 1e-7, max_iter: int = 500) -> np.ndarray:
+    """Maximum-likelihood proportions of classes in a region, given each voxel's class likelihoods.
+
+    The EM for the weights of a mixture whose components are fixed (Dempster, Laird & Rubin 1977;
+    McLachlan & Peel 2000, sec. 2.8): q_ik = pi_k l_ik / sum_j pi_j l_ij, then
+    pi_k = sum_i w_i q_ik / sum_i w_i, from equal shares until pi changes by less than `tol`.
+
+    Arguments:
+        likelihoods: (C, ...) class likelihoods l_ik >= 0 (any common scale per voxel, e.g. the
+            posteriors under a uniform prior).
+        weights: (...) voxel weights w_i >= 0 (how much each voxel belongs to the region).
+    Returns:
+        (C,) proportions summing to 1; equal shares where the region is empty.
+    """
+    lik = np.asarray(likelihoods, np.float64).reshape(len(likelihoods), -1)
+    w = np.asarray(weights, np.float64).ravel()
+    if lik.shape[1] != w.size:
+        raise ValueError(f"`likelihoods` {np.shape(likelihoods)} and `weights` {np.shape(weights)} do not match.")
+    keep = (w > 0) & (lik.sum(0) > 0)
+    lik, w = lik[:, keep], w[keep]
+    pi = np.full(len(lik), 1.0 / len(lik))
+    if not w.sum() > 0:
+        return pi
+    lik = lik / lik.sum(0)  # per-voxel scale is irrelevant; this keeps the sums well conditioned
+    for _ in range(max_iter):
+        q = pi[:, None] * lik
+        q /= q.sum(0)
+        new = (q * w).sum(1) / w.sum()
+        done = np.abs(new - pi).max() < tol
+        pi = new
+        if done:
+            break
+    return pi
+
+
+def with_proportions(priors, unmodelled, proportions, classes=UNMODELLED_CLASSES) -> np.ndarray:
+    """Priors whose `classes` share their mass s in the unmodelled region as `proportions`:
+    p_k <- (1 - u) p_k + u pi_k s (k in classes; other classes and the sum unchanged)."""
+    p = np.array(priors, dtype=np.float64, copy=True)
+    k = [int(c) for c in classes]
+    u = np.asarray(unmodelled, np.float64)
+    s = p[k].sum(0)
+    pi = np.asarray(proportions, np.float64)
+    p[k] = (1 - u) * p[k] + u * pi[:, None, None, None] * s
+    return p
+
+
 def cache_dir() -> Path:
     """The user cache folder of jaxhead: $XDG_CACHE_HOME/jaxhead or ~/.cache/jaxhead."""
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
@@ -244,11 +307,12 @@ def anatomy_atlas(anatomy, modality: Modality = "mri", *, voxel_mm: float = 2.0,
     """An atlas of one real anatomy (`jaxhead.segmentation.templates.Anatomy`) at `voxel_mm`.
 
     Priors: the anatomy's class fractions blurred by 3 mm plus a 5 % share of every head tissue
-    (`templates.atlas_priors`); template: a synthesised scan of the modality (`templates.render`).
+    (`templates.atlas_priors`); template: a synthesised scan of the modality (`templates.render`);
+    `unmodelled`: where the anatomy does not model bone (`templates.unmodelled_map`).
     """
     modality = check_modality(modality)
-    template, priors, affine = atlas_sources(anatomy, modality, voxel_mm)
-    return Atlas(template, priors, affine, modality, 1, name or anatomy.name)
+    template, priors, affine, unmodelled = atlas_sources(anatomy, modality, voxel_mm)
+    return Atlas(template, priors, affine, modality, 1, name or anatomy.name, unmodelled)
 
 
 def default_atlas(

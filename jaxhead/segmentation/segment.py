@@ -46,7 +46,7 @@ import itertools
 import logging
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import equinox as eqx
@@ -58,13 +58,14 @@ from scipy import ndimage
 
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, voxel_sizes
-from .atlas import N_CLASSES, Atlas, check_atlas_kind, default_atlas
+from .atlas import N_CLASSES, Atlas, check_atlas_kind, default_atlas, regional_proportions, with_proportions
 from .denoise import diffuse, noise_sd
 from .em import EMOptions, MixtureParams, bias_field, fit_mixture, infer_posteriors
 from .register import (
     AffineTransform, BSplineTransform, RegisterConfig, Transform, _level_factors, centre_of_mass, downsample, nmi,
     register, resample,
 )
+from .templates import UNMODELLED_CLASSES
 
 log = logging.getLogger(__name__)
 
@@ -563,17 +564,48 @@ def register_atlas(volume: Volume, atlas: Atlas, cfg: SegmentConfig = SegmentCon
     return transform, priors
 
 
-def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig()):
+def unmodelled_on_grid(volume: Volume, atlas: Atlas, transform: Transform, cfg: SegmentConfig = SegmentConfig()):
+    """The atlas's unmodelled-bone map (`Atlas.unmodelled`) on the scan's grid through the registration
+    (scan mm -> atlas mm), in [0, 1]; None where the atlas has none. For `classify`."""
+    if atlas.unmodelled is None:
+        return None
+    u = resample(atlas.unmodelled, atlas.affine, transform, volume.shape, volume.affine, dtype=_dtype(cfg))
+    return np.clip(np.asarray(u), 0.0, 1.0)
+
+
+def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmodelled=None):
     """EM + MRF classification of a scan given priors on its grid (the second half of `segment`).
 
     Arguments:
         volume: the scan (MRI magnitude or CT in HU).
         priors: (5, x, y, z) class priors on the scan's grid (e.g. from `register_atlas`).
         cfg: SegmentConfig.
+        unmodelled: optional (x, y, z) in [0, 1] on the scan's grid: where the atlas does not model
+            bone (`Atlas.unmodelled`, resampled; its priors there are placeholder soft tissue). There
+            the proportions of UNMODELLED_CLASSES (skull, scalp) are learnt from the scan: a first EM
+            + MRF run with the atlas priors fits the class intensity models; their likelihoods at
+            each voxel of that region give the maximum-likelihood proportions
+            (`atlas.regional_proportions`; voxel weight = unmodelled x the classes' share of the
+            likelihood); a second run uses priors that share that region in those proportions
+            (`atlas.with_proportions`).
     Returns:
         (posteriors (5, x, y, z) float32 numpy, EMResult of the parameter fit (on the strided
         sample), EMOptions used, bias coordinates of the full grid).
     """
+    post, res, opts, coords, lik = _classify(volume, priors, cfg, likelihoods=unmodelled is not None)
+    if unmodelled is not None:
+        priors = np.asarray(priors)
+        k = [int(c) for c in UNMODELLED_CLASSES]
+        pi = regional_proportions(lik[k], np.asarray(unmodelled) * lik[k].sum(0))
+        log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
+                 [Tissue(c).name.lower() for c in k], np.round(pi, 3).tolist())
+        post, res, opts, coords, _ = _classify(volume, with_proportions(priors, unmodelled, pi), cfg)
+    return post, res, opts, coords
+
+
+def _classify(volume: Volume, priors, cfg: SegmentConfig, likelihoods: bool = False):
+    """`classify` with one set of priors; with `likelihoods`, also the class posteriors under a
+    uniform prior at the fitted parameters (no MRF, no relaxation): the normalised class likelihoods."""
     dtype = _dtype(cfg)
     vox = voxel_sizes(volume.affine)
     stride = tuple(int(max(1, round(cfg.em_sample_mm / v))) for v in vox)
@@ -601,7 +633,12 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig()):
         post = infer_posteriors(y_full, priors, res.params, opts_full, cfg.sweeps, coords_full)
     crop = (slice(None),) + tuple(slice(0, n) for n in shape)
     post = np.asarray(post[crop], dtype=np.float32)
-    return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape))
+    lik = None
+    if likelihoods:
+        flat = replace(cfg.em_options(1.0), beta=0.0, relax=0.0)
+        uniform = jnp.full_like(priors, 1.0 / N_CLASSES)
+        lik = np.asarray(infer_posteriors(y_full, uniform, res.params, flat, 0, coords_full)[crop], dtype=np.float32)
+    return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape)), lik
 
 
 def segment_reported(volume: Volume, atlas: Atlas | None = None,
@@ -625,13 +662,14 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
     orientation = check_orientation(volume, atlas) if cfg.check_registration else {}
     transform, priors = register_atlas(volume, atlas, cfg)
     priors.block_until_ready()
+    unmodelled = unmodelled_on_grid(volume, atlas, transform, cfg)
     summary = {**registration_summary(volume, atlas, transform), **orientation}
     log.info("registration to the %s atlas: scales %s, rotation %.1f deg, det %.3f, NMI %.4f", atlas.name,
              np.round(summary["scales"], 3).tolist(), summary["rotation_deg"], summary["det"], summary["nmi"])
     if cfg.check_registration:
         check_registration(summary, volume)
     t1 = time.perf_counter()
-    post, res, opts, coords = classify(volume, priors, cfg)
+    post, res, opts, coords = classify(volume, priors, cfg, unmodelled)
     if cfg.modality == "ct" and cfg.bone_majority:
         post, info = bone_majority(np.asarray(volume.data), post)
         log.info("segment (ct): bone majority rule %s", {k: round(v, 1) for k, v in info.items()})

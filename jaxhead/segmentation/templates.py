@@ -27,8 +27,12 @@ rest of the intracranial space; skull = the first `skull_mm` outside it, never c
 `min_scalp_mm` to the scalp surface; scalp = the rest of the head (all soft tissue, face and neck
 included). No outer-skull surface ships with either package, hence the fixed thickness: adult
 cranial vault thickness averages 6-7 mm (e.g. Lynnerup et al. 2005, Forensic Sci. Int. 147:S37 report
-means 6.1-6.7 mm), scaled to the template's larger size (`ADULT_ICV_MM3`). Facial bones and vertebrae are not in this anatomy: the atlas's uniform share of
-every head tissue (`spread`) lets the scan's intensities claim them.
+means 6.1-6.7 mm), scaled to the template's larger size (`ADULT_ICV_MM3`). Facial bones, the skull
+base below the cranial floor and the vertebrae are not in this anatomy: the soft tissue under or
+beside the cranium is marked `unmodelled_bone` (`under_or_beside`), and `segment` learns the share of
+bone there from the scan (`atlas.regional_proportions`). Measured before that (ANTs head, MRI, 2 mm):
+about 82 % of its missed skull lay > 10 mm from the intracranial space in the face, labelled scalp under
+a 1.5 % skull prior.
 """
 
 from __future__ import annotations
@@ -90,18 +94,32 @@ class Anatomy(eqx.Module):
         affine: (4, 4) voxel -> world mm (RAS).
         name: where it comes from.
         t1: optional (x, y, z) measured T1 image (0 where not given), used in an MRI template.
+        unmodelled_bone: optional (x, y, z) in [0, 1]: where the source says nothing about bone, so
+            that its soft tissue there is a placeholder, not an observation (the MNI152 + fsaverage
+            head has no facial bones, skull base below the cranial floor or vertebrae); an atlas
+            built from it gives skull and scalp equal priors there (`atlas_priors`). None: the
+            anatomy is complete.
     """
 
     fractions: np.ndarray
     affine: np.ndarray
     name: str = eqx.field(static=True)
     t1: np.ndarray | None = None
+    unmodelled_bone: np.ndarray | None = None
 
     def __check_init__(self):
         if self.fractions.ndim != 4 or self.fractions.shape[0] != len(FINE_TISSUES):
             raise ValueError(f"`Anatomy.fractions` must be (6, x, y, z), got {self.fractions.shape}.")
-        if self.t1 is not None and self.t1.shape != self.fractions.shape[1:]:
-            raise ValueError(f"`Anatomy.t1` has shape {self.t1.shape}, fractions {self.fractions.shape[1:]}.")
+        for name in ("t1", "unmodelled_bone"):
+            a = getattr(self, name)
+            if a is not None and a.shape != self.fractions.shape[1:]:
+                raise ValueError(f"`Anatomy.{name}` has shape {a.shape}, fractions {self.fractions.shape[1:]}.")
+        u = self.unmodelled_bone
+        if u is not None and not (np.all(np.isfinite(u)) and u.min() >= 0 and u.max() <= 1):
+            raise ValueError(
+                f"`Anatomy.unmodelled_bone` must lie in [0, 1] (a mask or a fraction), got range "
+                f"{np.nanmin(u):.3g}..{np.nanmax(u):.3g}."
+            )
 
     @property
     def shape(self):
@@ -138,7 +156,7 @@ class Anatomy(eqx.Module):
                 return a.reshape(n[0], k[0], n[1], k[1], n[2], k[2]).mean((1, 3, 5))
 
             fr = np.stack([block(a) for a in self.fractions]).astype(np.float32)
-            t1 = None if self.t1 is None else block(self.t1).astype(np.float32)
+            t1, um = (None if a is None else block(a).astype(np.float32) for a in (self.t1, self.unmodelled_bone))
             aff = self.affine.copy()
             aff[:3, :3] = self.affine[:3, :3] * k
             aff[:3, 3] = self.affine[:3, :3] @ ((k - 1) / 2) + self.affine[:3, 3]
@@ -147,10 +165,11 @@ class Anatomy(eqx.Module):
             idx = np.meshgrid(*[np.arange(m) * s for m, s in zip(n, f)], indexing="ij")
             fr = np.stack([ndimage.map_coordinates(a, idx, order=1, mode="nearest") for a in self.fractions])
             fr = (fr / np.maximum(fr.sum(0, keepdims=True), 1e-12)).astype(np.float32)
-            t1 = None if self.t1 is None else ndimage.map_coordinates(self.t1, idx, order=1, mode="nearest")
+            t1, um = (None if a is None else ndimage.map_coordinates(a, idx, order=1, mode="nearest")
+                      for a in (self.t1, self.unmodelled_bone))
             aff = self.affine.copy()
             aff[:3, :3] = self.affine[:3, :3] * f
-        return Anatomy(fr, aff, self.name, t1)
+        return Anatomy(fr, aff, self.name, t1, um)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -227,6 +246,22 @@ def rasterise(vertices: np.ndarray, triangles: np.ndarray, shape, affine: np.nda
 ADULT_ICV_MM3 = 1.45e6
 
 
+def under_or_beside(mask: np.ndarray) -> np.ndarray:
+    """Voxels not above `mask` along the grid's third axis: below the lowest `mask` voxel of their
+    column, or in a column `mask` does not reach.
+
+    With a RAS-aligned grid (third axis superior) and `mask` the intracranial space, this is the part
+    of the head under the cranial floor (skull base, face, neck) or beside the cranium (in front of
+    the forehead, behind the occiput, the temples), where a shell around the intracranial space is
+    not a model of the bone.
+    """
+    m = np.asarray(mask, bool)
+    if m.ndim != 3:
+        raise ValueError(f"`mask` of `under_or_beside` must be 3D, got shape {m.shape}.")
+    floor = np.where(m.any(2), m.argmax(2), m.shape[2])  # first mask voxel from below; none: all
+    return np.arange(m.shape[2])[None, None, :] < floor[:, :, None]
+
+
 def mni152_anatomy(*, skull_mm: float = 6.5, min_scalp_mm: float = 2.0) -> Anatomy:
     """The MNI152 (ICBM 2009a) brain in fsaverage's inner skull and scalp, 1 mm (see module docstring).
 
@@ -236,7 +271,10 @@ def mni152_anatomy(*, skull_mm: float = 6.5, min_scalp_mm: float = 2.0) -> Anato
         min_scalp_mm: the skull stops this far inside the scalp surface, native mm (scaled alike).
     Returns:
         Anatomy on a 1 mm grid in MNI152 space, cut just above the bottom of fsaverage's neck (so that
-        edge-replicating the grid continues the neck downwards), with the measured T1.
+        edge-replicating the grid continues the neck downwards), with the measured T1, and the soft
+        tissue under or beside the cranium (outside the skull shell, deeper than `min_scalp_mm`
+        below the scalp surface) marked `unmodelled_bone`: facial bones, the skull base below the
+        cranial floor and the vertebrae lie there in a real head, and neither package gives them.
     """
     data = _package_file("nilearn", "datasets", "data")
     imgs = {k: nib.load(data / f"mni_icbm152_{k}_tal_nlin_sym_09a_converted.nii.gz") for k in ("t1", "gm", "wm")}
@@ -291,7 +329,8 @@ def mni152_anatomy(*, skull_mm: float = 6.5, min_scalp_mm: float = 2.0) -> Anato
     fr[5] = head & ~intracranial & ~skull
     fr[0] = ~head
     t1 = np.where(intracranial, t1, 0.0).astype(np.float32)
-    return Anatomy(fr, affine, "mni152", t1)
+    unmodelled = head & ~intracranial & ~skull & (d_scalp > min_scalp_mm) & under_or_beside(intracranial)
+    return Anatomy(fr, affine, "mni152", t1, unmodelled.astype(np.float32))
 
 
 def read_jnifti(path) -> tuple[np.ndarray, np.ndarray]:
@@ -392,6 +431,22 @@ def random_contrast(modality: str, rng: np.random.Generator) -> dict:
     return {k: float(rng.uniform(*r)) for k, r in ranges.items()}
 
 
+#: The classes whose proportions `segment` learns from the scan where an anatomy does not model
+#: bone (`Anatomy.unmodelled_bone`): the anatomy's soft tissue there is a placeholder that may be
+#: bone. (Air in sinuses and airways is left to the background prior: in MRI bone and air are both
+#: dark, and the anatomy says nothing about either.)
+UNMODELLED_CLASSES = (Tissue.SKULL, Tissue.SCALP)
+
+
+def unmodelled_map(anatomy: Anatomy, sigma_mm: float = 3.0) -> np.ndarray | None:
+    """`anatomy.unmodelled_bone` blurred like the priors (`atlas_priors`), in [0, 1]; None without one."""
+    if anatomy.unmodelled_bone is None:
+        return None
+    sig = sigma_mm / voxel_sizes(anatomy.affine)
+    u = ndimage.gaussian_filter(anatomy.unmodelled_bone.astype(np.float64), sig, mode="nearest")
+    return np.clip(u, 0.0, 1.0).astype(np.float32)
+
+
 def atlas_priors(anatomy: Anatomy, *, sigma_mm: float = 3.0, spread: float = 0.05) -> np.ndarray:
     """(5, x, y, z) class priors from one anatomy: fractions blurred, plus a share of every head tissue.
 
@@ -402,7 +457,10 @@ def atlas_priors(anatomy: Anatomy, *, sigma_mm: float = 3.0, spread: float = 0.0
             variability after affine registration is several mm, e.g. Fonov et al. 2011).
         spread: inside the (blurred) head, this probability is shared equally among the four head
             classes, so that no tissue is impossible where the subject has it and the atlas has not
-            (facial bones, a thicker skull).
+            (a thicker skull, a wider ventricle).
+    Where `anatomy.unmodelled_bone` is set, the priors still say what the anatomy says (its
+    placeholder soft tissue); `segment` learns the skull/scalp proportion there from the scan
+    (`unmodelled_map`, `atlas.regional_proportions`).
     Returns:
         priors summing to 1 over classes.
     """
@@ -416,8 +474,9 @@ def atlas_priors(anatomy: Anatomy, *, sigma_mm: float = 3.0, spread: float = 0.0
 
 
 def atlas_sources(anatomy: Anatomy, modality: str, voxel_mm: float, *, sigma_mm: float = 3.0,
-                  spread: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Template, priors and affine of an atlas of one anatomy at `voxel_mm` (see `atlas_priors`).
+                  spread: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Template, priors, affine and unmodelled-bone map (`unmodelled_map`, or None) of an atlas of one
+    anatomy at `voxel_mm` (see `atlas_priors`).
 
     The template is `render` without noise or bias (MRI: the default T1 contrast, with the measured T1
     inside the brain where the anatomy carries one; CT: CT_HU), MRI scaled to brain median 1.
@@ -427,4 +486,4 @@ def atlas_sources(anatomy: Anatomy, modality: str, voxel_mm: float, *, sigma_mm:
     if modality == "mri":
         brain = a.class_fractions()[int(Tissue.BRAIN)] > 0.5
         template = template / float(np.median(template[brain]))
-    return template, atlas_priors(a, sigma_mm=sigma_mm, spread=spread), a.affine
+    return template, atlas_priors(a, sigma_mm=sigma_mm, spread=spread), a.affine, unmodelled_map(a, sigma_mm)
