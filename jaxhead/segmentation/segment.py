@@ -604,8 +604,9 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
 
 
 def _classify(volume: Volume, priors, cfg: SegmentConfig, likelihoods: bool = False):
-    """`classify` with one set of priors; with `likelihoods`, also the class posteriors under a
-    uniform prior at the fitted parameters (no MRF, no relaxation): the normalised class likelihoods."""
+    """`classify` with one set of priors; with `likelihoods` (a first pass), the class posteriors under
+    a uniform prior at the fitted parameters (no MRF, no relaxation: the normalised class likelihoods)
+    instead of the posteriors (None)."""
     dtype = _dtype(cfg)
     vox = voxel_sizes(volume.affine)
     stride = tuple(int(max(1, round(cfg.em_sample_mm / v))) for v in vox)
@@ -626,18 +627,18 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, likelihoods: bool = Fa
         "segment (%s): EM %d iterations (converged %s), means %s", cfg.modality, int(res.n_iter),
         bool(res.converged), np.round(np.asarray(res.params.means), 3).tolist(),
     )
-    if all(s == 1 for s in stride):
-        post = res.posteriors  # the EM ran on the full grid
-    else:
-        opts_full = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox)))
-        post = infer_posteriors(y_full, priors, res.params, opts_full, cfg.sweeps, coords_full)
     crop = (slice(None),) + tuple(slice(0, n) for n in shape)
-    post = np.asarray(post[crop], dtype=np.float32)
-    lik = None
-    if likelihoods:
+    post = lik = None
+    if likelihoods:  # a first pass: only the likelihoods are used, so the MRF sweeps are skipped
         flat = replace(cfg.em_options(1.0), beta=0.0, relax=0.0)
         uniform = jnp.full_like(priors, 1.0 / N_CLASSES)
         lik = np.asarray(infer_posteriors(y_full, uniform, res.params, flat, 0, coords_full)[crop], dtype=np.float32)
+    elif all(s == 1 for s in stride):
+        post = np.asarray(res.posteriors[crop], dtype=np.float32)  # the EM ran on the full grid
+    else:
+        opts_full = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox)))
+        post = infer_posteriors(y_full, priors, res.params, opts_full, cfg.sweeps, coords_full)
+        post = np.asarray(post[crop], dtype=np.float32)
     return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape)), lik
 
 
