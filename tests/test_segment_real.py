@@ -4,28 +4,34 @@ Fast cases at 4 mm; the table at 2 mm is experiments/segmentation_accuracy.py (a
 The held-out head is the ANTs 19.5-year head in ../shared/data/heads (skipped where it is absent).
 """
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
+from shipped_heads import HEADS, needs_heads
 
 from jaxhead.segmentation import SegmentConfig, default_atlas, segment, segment_reported
 from jaxhead.segmentation.atlas import ATLAS_VERSION, anatomy_atlas
-from jaxhead.segmentation.segment import MAX_SCALE, MIN_NMI, MIN_SCALE, check_label_map, dice_scores
+from jaxhead.segmentation.segment import (
+    MAX_SCALE,
+    MIN_NMI,
+    MIN_SCALE,
+    check_label_map,
+    dice_scores,
+)
 from jaxhead.segmentation.templates import (
-    CT_HU, MRI_CONTRAST, ants_anatomy, mni152_anatomy, random_contrast, rasterise, render,
+    CT_HU,
+    MRI_CONTRAST,
+    ants_anatomy,
+    mni152_anatomy,
+    random_contrast,
+    rasterise,
+    render,
 )
 from jaxhead.tissue import Tissue
 from jaxhead.volume import LabelMap, Volume
 
-# ../shared/data/heads beside the checkout (a worktree may sit one folder deeper), or $JAXHEAD_HEADS
-HEADS = Path(os.environ.get("JAXHEAD_HEADS") or next(
-    (p / "shared" / "data" / "heads" for p in Path(__file__).resolve().parents
-     if (p / "shared" / "data" / "heads").is_dir()), "../shared/data/heads"))
-needs_heads = pytest.mark.skipif(not (HEADS / "c1ANTS19-5Years_head.jnii").exists(),
-                                 reason="the ANTs test head (../shared/data/heads) is not here")
 VOX = 4.0
 
 

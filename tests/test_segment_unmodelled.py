@@ -2,12 +2,11 @@
 proportions learnt from the scan, and the facial skull of a head the atlas never saw.
 """
 
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import ndimage
+from shipped_heads import HEADS, needs_heads
 
 from jaxhead.segmentation import (
     SegmentConfig,
@@ -26,11 +25,6 @@ from jaxhead.segmentation.templates import (
 )
 from jaxhead.tissue import Tissue
 
-HEADS = Path(os.environ.get("JAXHEAD_HEADS") or next(
-    (p / "shared" / "data" / "heads" for p in Path(__file__).resolve().parents
-     if (p / "shared" / "data" / "heads").is_dir()), "../shared/data/heads"))
-needs_heads = pytest.mark.skipif(not (HEADS / "c1ANTS19-5Years_head.jnii").exists(),
-                                 reason="the ANTs test head (../shared/data/heads) is not here")
 VOX = 4.0
 
 
