@@ -44,7 +44,7 @@ import numpy as np
 from scipy import ndimage
 
 from .tissue import Tissue
-from .volume import LabelMap, Volume, default_affine
+from .volume import LabelMap, Volume, add_scanner_noise, default_affine
 
 __all__ = ["PhantomHead", "Structure", "STRUCTURE_TISSUE", "make_head", "make_population", "structure_map"]
 
@@ -859,15 +859,8 @@ def make_head(modality: Modality = "mri", *, shape: tuple[int, int, int] | None 
             affine = default_affine(vox, shape)
             ax_h = tuple(affine[i, i] * np.arange(shape[i]) + affine[i, 3] + centre[i] for i in range(3))
             image *= np.exp(sub.bias_scale * sub.bias.grid(ax_h))
-        if noise > 0:
-            # Rician magnitude noise: |I + n_re + i n_im| with n ~ N(0, sigma^2) per channel
-            # (Gudbjartsson & Patz 1995, MRM 34:910).
-            sigma = noise * 1.0  # white matter = 1
-            re = image + sigma * noise_rng.standard_normal(image.shape)
-            im = sigma * noise_rng.standard_normal(image.shape)
-            image = np.sqrt(re * re + im * im)
-    elif noise > 0:
-        image = image + noise * noise_rng.standard_normal(image.shape)
+    # MRI: Rician noise with sd relative to white matter (= 1); CT: Gaussian noise in HU.
+    image = add_scanner_noise(image, noise, modality, noise_rng)
     affine = default_affine(vox, shape)
     if np.any(labels[[0, -1]]) or np.any(labels[:, [0, -1]]) or np.any(labels[:, :, [0, -1]]):
         raise AssertionError("phantom head touches the grid border")  # guarded by _grid_shape

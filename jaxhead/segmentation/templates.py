@@ -51,7 +51,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..tissue import Tissue
-from ..volume import LabelMap, Volume, voxel_sizes
+from ..volume import LabelMap, Volume, add_scanner_noise, voxel_sizes
 
 log = logging.getLogger(__name__)
 
@@ -416,13 +416,8 @@ def render(anatomy: Anatomy, modality: str, *, contrast: dict | None = None, noi
             field -= field[head].mean()
             field *= bias / max(np.abs(field[head]).max(), 1e-12)
             img = img * np.exp(field)
-        if noise > 0:
-            s = noise * base["white_matter"]
-            img = np.hypot(img + s * rng.standard_normal(img.shape), s * rng.standard_normal(img.shape))
-    else:
-        if noise > 0:
-            img = img + noise * rng.standard_normal(img.shape)
-    return Volume(img, anatomy.affine)
+    sd = noise * base["white_matter"] if modality == "mri" else noise
+    return Volume(add_scanner_noise(img, sd, modality, rng), anatomy.affine)
 
 
 def random_contrast(modality: str, rng: np.random.Generator) -> dict:

@@ -29,7 +29,7 @@ import itertools
 import numpy as np
 
 from ..segmentation import Atlas, SegmentConfig, dice_scores, segment
-from ..volume import LabelMap, Volume
+from ..volume import LabelMap, Volume, add_scanner_noise
 
 def robust_range(volume: Volume) -> float:
     """P99 - P1 of all the scan's voxel intensities (the unit of the noise amplitude)."""
@@ -76,12 +76,7 @@ def perturb_scan(volume: Volume, modality: str, amplitude: float, *, bias_percen
     if bias_percent > 0:
         data *= np.exp(bias_percent / 100.0 * _bias(data.shape, rng))
     sd = amplitude / 100.0 * rr
-    if sd > 0:
-        if modality == "mri":
-            data = np.hypot(data + sd * rng.standard_normal(data.shape),
-                            sd * rng.standard_normal(data.shape))
-        else:
-            data = data + sd * rng.standard_normal(data.shape)
+    data = add_scanner_noise(data, sd, modality, rng)
     return Volume(data, volume.affine), {"noise_sd": sd, "robust_range": rr,
                                          "bias_percent": float(bias_percent)}
 
