@@ -78,9 +78,9 @@ def test_order_prevents_csf_capturing_grey_matter():
     prior = jnp.asarray(np.stack([1 - pc, pc]))
     truth = region == 3
 
-    def fit(order):
+    def fit(order, offset=0.0):
         opts = EMOptions(component_class=(0, 0, 1), n_classes=2, max_iter=300, tol=1e-9, mean_order=order)
-        res = fit_mixture(jnp.asarray(y), prior, opts)
+        res = fit_mixture(jnp.asarray(y + offset), prior, opts)
         lab = np.asarray(res.posteriors).argmax(0) == 1
         return np.asarray(res.params.means), 2 * (lab & truth).sum() / (lab.sum() + truth.sum())
 
@@ -88,6 +88,10 @@ def test_order_prevents_csf_capturing_grey_matter():
     assert mu_ml[2] > 40 and dice_ml < 0.1, (mu_ml, dice_ml)  # captured without the order
     assert mu_o[2] <= min(mu_o[:2]) - 5.0 + 1e-6 and mu_o[2] < 20, mu_o
     assert dice_o > 0.6, dice_o
+    # a scanner's HU offset moves every mean by the offset and changes no label (the order is a contrast)
+    mu_s, dice_s = fit(((2, 0, 5.0),), offset=300.0)
+    np.testing.assert_allclose(mu_s, mu_o + 300.0, atol=1e-6)
+    assert dice_s == dice_o
 
 
 def test_segment_config_csf_below_brain():
