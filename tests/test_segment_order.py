@@ -118,6 +118,7 @@ def test_segment_config_csf_below_brain():
         (((0, 1, -1.0),), "margin >= 0"),
         (((0, 1, 1.0), (1, 2, 0.0)), "more than one pair"),
         (((0, 1),), "tuples"),
+        (((0, 1, "5"),), "a number"),
     ],
 )
 def test_mean_order_validation(order, match):

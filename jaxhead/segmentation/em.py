@@ -163,6 +163,8 @@ def _check_mean_order(order, cc, pv_of) -> None:
         if not (isinstance(pair, tuple) and len(pair) == 3):
             raise ValueError(f"`mean_order` entries must be (j_low, j_high, margin) tuples, got {pair!r}.")
         lo, hi, margin = pair
+        if isinstance(margin, bool) or not isinstance(margin, (int, float, np.integer, np.floating)):
+            raise ValueError(f"`mean_order` {pair!r}: the margin must be a number >= 0 in data units.")
         if lo == hi or not (math.isfinite(margin) and margin >= 0):
             raise ValueError(f"`mean_order` {pair!r}: needs two different Gaussians and a finite margin >= 0.")
         for j in (lo, hi):
@@ -419,7 +421,7 @@ def ordered_means(means, precisions, order):
 
     the precision-weighted compromise (each mean moves against its own precision). This is the MAP
     under a flat prior restricted to the ordered means, i.e. a prior that rules out only what is
-    physically impossible (CT: water-like CSF brighter than brain, see segment.DEFAULT_CSF_MARGIN_HU);
+    physically impossible (CT: water-like CSF brighter than brain, see segment.CSF_BRAIN_MARGIN_HU);
     inside the admissible region the likelihood alone decides.
 
     Arguments:
