@@ -15,7 +15,8 @@ degree <= d without the constant (the means absorb it). Iterations:
   neighbours' posteriors) and renormalised (Van Leemput et al. 1999; see mrf.py).
 - M-step: weighted means, variances and within-class weights (maximum likelihood, or with
   `weight_prior` > 0 the MAP under a Dirichlet prior that keeps every free Gaussian of a class from
-  being emptied: `map_weights`; Ormoneit & Tresp 1998); then the bias coefficients by weighted
+  being emptied: `map_weights`; Ormoneit & Tresp 1998; with `mean_order`, means kept in a given
+  order, `ordered_means`); then the bias coefficients by weighted
   least squares with weights W_i = sum_j r_ij / v_j over the head's Gaussians (Van Leemput 1999,
   eq. 6; Wells 1996).
 - Prior relaxation (Cardoso et al. 2011, NeuroImage 56:1386; NiftySeg seg_EM -rf): once the EM with
@@ -87,6 +88,9 @@ class EMOptions:
             instead of maximum likelihood; see `map_weights`): pseudo-counts eta * N_k / F_k on each
             of class k's F_k free Gaussians, N_k the class's soft voxel count, so that no free
             Gaussian's weight falls below eta / ((1 + eta) F_k). 0 = maximum likelihood.
+        mean_order: pairs (j_low, j_high, margin): the M-step keeps mu_{j_low} <= mu_{j_high} - margin
+            (margin >= 0 in data units; the MAP under a flat prior on the ordered means, see
+            `ordered_means`). Each Gaussian in at most one pair; free Gaussians only. Empty: no order.
     """
 
     component_class: tuple[int, ...]
@@ -105,9 +109,11 @@ class EMOptions:
     pv_of: tuple[int, ...] = ()
     pv_log: bool = False
     weight_prior: float = 0.0
+    mean_order: tuple[tuple[int, int, float], ...] = ()
 
     def __post_init__(self):
         cc = tuple(self.component_class)
+        _check_mean_order(self.mean_order, cc, self.pv_of)
         if self.pv_of:
             pv = tuple(self.pv_of)
             if len(pv) != len(cc):
@@ -149,6 +155,26 @@ class EMOptions:
     def is_free(self, j: int) -> bool:
         """Whether Gaussian j has its own mean and variance (not a tied partial-volume one)."""
         return not self.pv_of or self.pv_of[j] < 0
+
+
+def _check_mean_order(order, cc, pv_of) -> None:
+    seen = []
+    for pair in order:
+        if not (isinstance(pair, tuple) and len(pair) == 3):
+            raise ValueError(f"`mean_order` entries must be (j_low, j_high, margin) tuples, got {pair!r}.")
+        lo, hi, margin = pair
+        if isinstance(margin, bool) or not isinstance(margin, (int, float, np.integer, np.floating)):
+            raise ValueError(f"`mean_order` {pair!r}: the margin must be a number >= 0 in data units.")
+        if lo == hi or not (math.isfinite(margin) and margin >= 0):
+            raise ValueError(f"`mean_order` {pair!r}: needs two different Gaussians and a finite margin >= 0.")
+        for j in (lo, hi):
+            if isinstance(j, bool) or not isinstance(j, (int, np.integer)) or not 0 <= j < len(cc):
+                raise ValueError(f"`mean_order` {pair!r}: Gaussian index {j!r} is not in 0..{len(cc) - 1}.")
+            if pv_of and pv_of[j] >= 0:
+                raise ValueError(f"`mean_order` {pair!r}: Gaussian {j} is a tied partial-volume one; order free ones.")
+            if j in seen:
+                raise ValueError(f"`mean_order`: Gaussian {j} is in more than one pair; give each at most one.")
+            seen.append(j)
 
 
 class MixtureParams(eqx.Module):
@@ -358,8 +384,12 @@ def _responsibilities(post, pj, lk, opts):
     return lax.optimization_barrier(r)  # materialise once; the M-step reads each r_j three times
 
 
-def _m_step(y, r, mu_old, opts: EMOptions, var_floor):
-    """Means, variances (shifted by the old means for accuracy) and within-class weights."""
+def _m_step(y, r, mu_old, opts: EMOptions, var_floor, var_old=None, scale=1.0):
+    """Means, variances (shifted by the old means for accuracy) and within-class weights.
+
+    With `opts.mean_order`: the means are `ordered_means` (weights n_j / var_old_j, margins / scale
+    in standardised units) and each variance is about its own constrained mean.
+    """
     n, s1, s2 = [], [], []
     for j, rj in enumerate(r):
         d = y - mu_old[j]
@@ -370,8 +400,44 @@ def _m_step(y, r, mu_old, opts: EMOptions, var_floor):
     n = n + jnp.finfo(y.dtype).tiny
     shift = s1 / n
     mu = mu_old + shift
-    var = jnp.maximum(s2 / n - shift**2, var_floor)
-    return mu, var, map_weights(n, opts)
+    var = s2 / n - shift**2
+    if opts.mean_order:
+        mu_c = ordered_means(mu, n / var_old, tuple((lo, hi, m / scale) for lo, hi, m in opts.mean_order))
+        var = var + (mu_c - mu) ** 2  # sum_i r_ij (y_i - mu_c)^2 / n_j
+        mu = mu_c
+    return mu, jnp.maximum(var, var_floor), map_weights(n, opts)
+
+
+def ordered_means(means, precisions, order):
+    """The M-step's means under order constraints mu_lo <= mu_hi - margin (closed form).
+
+    With the variances v_j held at their last values (an ECM step: Meng & Rubin 1993, Biometrika
+    80:267), the part of the expected complete-data log-likelihood that depends on the means is
+    -sum_j a_j (mu_j - m_j)^2 / 2 with a_j = n_j / v_j (soft count over variance) and m_j the
+    weighted sample mean (the unconstrained M-step). For disjoint pairs (lo, hi, delta) the maximiser
+    on {mu_lo <= mu_hi - delta} is m where the order holds, and otherwise on the boundary:
+
+        mu_hi = (a_hi m_hi + a_lo (m_lo + delta)) / (a_lo + a_hi),   mu_lo = mu_hi - delta,
+
+    the precision-weighted compromise (each mean moves against its own precision). This is the MAP
+    under a flat prior restricted to the ordered means, i.e. a prior that rules out only what is
+    physically impossible (CT: water-like CSF brighter than brain, see segment.CSF_BRAIN_MARGIN_HU);
+    inside the admissible region the likelihood alone decides.
+
+    Arguments:
+        means: (J,) unconstrained means m_j.
+        precisions: (J,) a_j = n_j / v_j (> 0).
+        order: tuple of disjoint (lo, hi, delta), delta >= 0 in the means' units.
+    Returns:
+        (J,) the constrained means.
+    """
+    mu = means
+    for lo, hi, delta in order:
+        a_lo, a_hi = precisions[lo], precisions[hi]
+        t = (a_hi * means[hi] + a_lo * (means[lo] + delta)) / (a_lo + a_hi)
+        bad = means[lo] > means[hi] - delta
+        mu = mu.at[hi].set(jnp.where(bad, t, means[hi])).at[lo].set(jnp.where(bad, t - delta, means[lo]))
+    return mu
 
 
 def map_weights(counts, opts: EMOptions):
@@ -548,7 +614,7 @@ def fit_mixture(y, priors, opts: EMOptions, init: MixtureParams | None = None, c
         yc = ys - bias_of(coef)
         post, pj, lk, ll = _e_step(yc, _mrf_prior(prior, post_prev, opts.beta), mu, var, w, opts)
         r = _responsibilities(post, pj, lk, opts)
-        mu, var, w = _m_step(yc, r, mu, opts, floor)
+        mu, var, w = _m_step(yc, r, mu, opts, floor, var, s)
         mu, var = _tie_partial_volume(mu, var, opts, c, s)
         if degree > 0:
             wv = functools.reduce(jnp.add, [r[j] / var[j] for j in range(len(r)) if bias_comp[j]])

@@ -17,7 +17,8 @@ Hounsfield units with no bias field.
 What the intensity model assumes (and what it learns from the scan):
 
 - Each class is a mixture of a few Gaussians (DEFAULT_GAUSSIANS) whose means, variances and weights
-  are all fitted to this scan; nothing about the tissues' contrast is fixed. The start is the
+  are all fitted to this scan; nothing about the tissues' contrast is fixed, except on CT the order
+  of CSF below brain by CSF_BRAIN_MARGIN_HU (physical Hounsfield units; `csf_below_brain`). The start is the
   registered atlas priors' weighted intensity quantiles of the scan itself (em._init_params), so an
   MRI with another contrast ratio, a dark or a fat-bright scalp, or a CT with another scanner's HU
   calibration starts from its own intensities, not the atlas template's.
@@ -107,6 +108,24 @@ DEFAULT_DENOISE = {"mri": False, "ct": True}
 #: way and MRI CSF on the MNI152 head fell 0.669 -> 0.650 and 0.591 -> 0.559 (a skull Gaussian kept
 #: alive on CSF's intensities); experiments/results/segmentation_weight_prior.md.
 DEFAULT_WEIGHT_PRIOR = {"mri": 0.0, "ct": 0.0}
+#: CT: the M-step keeps the CSF class's first ("pure", lowest-starting) Gaussian at least
+#: CSF_BRAIN_MARGIN_HU below the brain class's first (lowest-starting) Gaussian (em.ordered_means).
+#: Hounsfield units are physical (water 0, air -1000): CSF is water-like, 0-15 HU, white matter
+#: 20-30 HU and grey matter 35-45 HU on any calibrated scanner (Buzug 2008, Computed Tomography,
+#: Springer, Fig. 1.2; Schneider, Bortfeld & Schlegel 2000, Phys. Med. Biol. 45:459, Table 1), so a
+#: brain Gaussian (grey, white or their mixture) lies >= 20 - 15 = 5 HU above CSF whatever the
+#: scanner's offset (an offset moves both). The order only rules out what is physically impossible:
+#: a "CSF" Gaussian that climbs onto grey matter where the registered atlas puts CSF on cortex
+#: (experiments/results/segmentation_weight_prior.md: maximum likelihood cannot tell the two apart).
+#: The margin is the literature's minimum, no more: the fitted "pure" CSF Gaussian absorbs CSF/brain
+#: partial volume (ANTs head, 2 mm, 20 HU, default contrast: CSF 26.6 HU against brain 32.4 HU).
+#: Measured (experiments/results/segmentation_csf_order.md): held-out ANTs CT random contrast CSF
+#: 0.411 -> 0.480 at 20 HU, 0.479 -> 0.494 at 5 HU, brain 0.898 -> 0.919; every other held-out scan,
+#: the demo's phantom setting and MRI unchanged; a 10 HU margin gave the same within 0.011.
+CSF_BRAIN_MARGIN_HU = 5.0
+#: Whether that order is imposed by default (MRI: never; intensities are relative and the order of
+#: CSF and brain depends on the weighting).
+DEFAULT_CSF_BELOW_BRAIN = {"mri": False, "ct": True}
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -165,6 +184,9 @@ class SegmentConfig:
         weight_prior: eta of the Dirichlet (MAP) prior on each class's within-class weights
             (`jaxhead.segmentation.em.map_weights`); 0 = maximum likelihood; None: the modality
             default (DEFAULT_WEIGHT_PRIOR).
+        csf_below_brain: CT: keep the CSF class's first Gaussian mean CSF_BRAIN_MARGIN_HU below the
+            brain class's first Gaussian mean (literature Hounsfield units; em.ordered_means). None: the
+            modality default (DEFAULT_CSF_BELOW_BRAIN); True with an MRI is an error.
         bone_majority: CT: relabel the bone surface by the partial-volume majority rule after the EM
             (`bone_majority`; ignored for MRI).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
@@ -192,6 +214,7 @@ class SegmentConfig:
     bone_majority: bool = True
     denoise: bool | None = None
     weight_prior: float | None = None
+    csf_below_brain: bool | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -231,6 +254,16 @@ class SegmentConfig:
                 f"[segment] `weight_prior` must be a number >= 0 (0 = maximum likelihood) or None (modality "
                 f"default), got {self.weight_prior!r}."
             )
+        if self.csf_below_brain is not None and not isinstance(self.csf_below_brain, (bool, np.bool_)):
+            raise ValueError(
+                f"[segment] `csf_below_brain` must be true, false or None (modality default), got "
+                f"{self.csf_below_brain!r}."
+            )
+        if self.csf_below_brain and self.modality != "ct":
+            raise ValueError(
+                "[segment] `csf_below_brain=True` needs modality='ct' (Hounsfield units); MRI intensities are "
+                "relative and their CSF/brain order depends on the weighting. Leave it None for an MRI."
+            )
         if not isinstance(self.check_registration, (bool, np.bool_)):
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
@@ -259,11 +292,14 @@ class SegmentConfig:
                         pv.append(int(b if k == a else a))
         degree = DEFAULT_BIAS_DEGREE[self.modality] if self.bias_degree is None else self.bias_degree
         eta = DEFAULT_WEIGHT_PRIOR[self.modality] if self.weight_prior is None else self.weight_prior
+        below = DEFAULT_CSF_BELOW_BRAIN[self.modality] if self.csf_below_brain is None else self.csf_below_brain
+        order = ((cc.index(int(Tissue.CSF)), cc.index(int(Tissue.BRAIN)), CSF_BRAIN_MARGIN_HU),) if below else ()
         return EMOptions(
             component_class=tuple(cc), n_classes=N_CLASSES, beta=float(self.beta), max_iter=self.max_iter,
             tol=float(self.tol), relax=float(self.relax), relax_sigma_vox=float(relax_sigma_vox),
             bias_degree=int(degree), bias_classes=tuple(range(1, N_CLASSES)),
             pv_of=tuple(pv) if self.partial_volume else (), pv_log=self.modality == "mri", weight_prior=float(eta),
+            mean_order=order,
         )
 
 
