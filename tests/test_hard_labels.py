@@ -500,3 +500,30 @@ def test_link_chi_is_the_local_euler_change():
         c2 = c.copy()
         c2[2, 2, 2] = False
         assert euler_characteristic(c2) - euler_characteristic(c) == _link_chi(~b) - 1
+
+
+def test_brain_tunnel_plug_is_one_cross_section_of_the_channel():
+    """A brain block pierced by a straight CSF channel one voxel wide and 16 long (genus 1): the
+    radius-1 closing proposes the whole channel, the plug keeps one cross-section widened by one
+    voxel (3 channel voxels), so 13 CSF voxels stay CSF; the brain solid is genus 0 after. The
+    skull solid (a shell's channel, sealed for current flow) still takes the whole piece."""
+    from jaxhead.geometry.layers import _genus, _plug_tunnels
+    L = np.zeros((30, 30, 30), np.uint8)
+    L[4:26, 4:26, 4:26] = 2
+    L[7:23, 7:23, 7:23] = 1
+    L[15, 15, 7:23] = 2  # the channel, open to the CSF at both ends
+    channel = np.zeros(L.shape, bool)
+    channel[15, 15, 7:23] = True
+    assert _genus((L >= 1) & (L <= 1)) == 1
+    B = L.copy()
+    n_plug, n_cut = _plug_tunnels(B, 1, np.array([2.0, 2.0, 2.0]), 4, None)
+    assert (n_plug, n_cut) == (1, 0)
+    assert _genus(B == 1) == 0
+    filled = int((B[channel] == 1).sum())
+    assert filled == 3, filled
+    assert (B[~channel] == L[~channel]).all()
+    # the same block as the skull solid (labels shifted out by two): the whole channel is filled
+    S = np.where(L > 0, L + 2, 0).astype(np.uint8)
+    S[S == 4] = 4
+    n_plug, _ = _plug_tunnels(S, 3, np.array([2.0, 2.0, 2.0]), 4, None)
+    assert n_plug == 1 and (S[channel] == 3).sum() >= 14

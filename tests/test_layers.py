@@ -254,7 +254,8 @@ def test_min_thickness_in_mm_with_anisotropic_voxels():
 def test_default_thickness_is_one_voxel():
     rep = make_layers_reported(LabelMap(*spheres()[:2]))[1]
     assert rep.min_thickness_mm == {Tissue.CSF: VOX, Tissue.SKULL: VOX, Tissue.SCALP: VOX}
-    assert rep.closing_radius_mm[Tissue.BRAIN] == VOX  # max(2 mm, one voxel)
+    assert rep.closing_radius_mm[Tissue.SKULL] == VOX  # max(2 mm, one voxel)
+    assert rep.closing_radius_mm[Tissue.BRAIN] == 0.0  # the brain is not closed
 
 
 def test_ball_is_the_digital_ellipsoid():
@@ -277,10 +278,14 @@ def test_report_str_and_dict():
     json.dumps(d)
     assert list(d["changes"]) == list(RULES)
     assert d["changes"]["components"]["brain->background"] == 8
+    assert (d["nesting"], d["thin"]) == ("face", "remove")
+    d2 = make_layers_reported(LabelMap(L, aff), LayerConfig(nesting="cube", thin="keep"))[1].to_dict()
+    assert (d2["nesting"], d2["thin"]) == ("cube", "keep")
     s = str(rep)
     for rule in RULES:
         assert rule in s
     assert "BRAIN->BACKGROUND 8" in s
+    assert "nesting: face" in s and "thin skull/scalp parts: remove" in s
     assert make_layers(LabelMap(L, aff)).labels.shape == L.shape
 
 
@@ -368,3 +373,26 @@ def test_config_validation():
         LayerConfig(ventricles="csf")
     cfg = LayerConfig(min_thickness_mm={Tissue.SKULL: 4.0})
     assert cfg.thicknesses([1.0, 1.0, 2.0]) == {Tissue.CSF: 2.0, Tissue.SKULL: 4.0, Tissue.SCALP: 2.0}
+
+
+def test_sulcus_one_voxel_wide_stays_csf():
+    """The brain is not closed by default (its closing would fill the sulci: the CSF the rules
+    keep): a one-voxel-wide CSF groove cut 4 voxels deep into the brain stays CSF, while the
+    shells keep the default closing (max(2 mm, one voxel)); an explicit brain radius still
+    closes it."""
+    L, aff, r = spheres()
+    xyz = world_grid(L.shape, aff)
+    x0 = xyz[L.shape[0] // 2, 0, 0, 0]
+    groove = (np.abs(xyz[..., 0] - x0) < VOX / 2) & (np.abs(xyz[..., 1]) < 4 * VOX) & (r > 24 - 4 * VOX) & (L == 1)
+    groove &= xyz[..., 2] > 0
+    L[groove] = 2
+    out, rep = make_layers_reported(LabelMap(L, aff))
+    assert rep.closing_radius_mm[Tissue.BRAIN] == 0.0
+    assert rep.closing_radius_mm[Tissue.SKULL] == VOX
+    assert groove.sum() >= 20 and out.labels.shape == L.shape
+    assert (out.labels[groove] == 2).all()
+    assert rep.volumes_after_mm3[Tissue.CSF] >= rep.volumes_before_mm3[Tissue.CSF]
+    closed, rep_c = make_layers_reported(LabelMap(L, aff), LayerConfig(closing_radius_mm=VOX))
+    assert (closed.labels[groove] == 1).mean() > 0.5
+    assert_strictly_nested(out.labels)
+    assert_counts_add_up(L, out.labels, rep)
