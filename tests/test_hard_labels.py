@@ -37,9 +37,8 @@ from jaxhead.phantom import make_head
 from jaxhead.tissue import TISSUES, Tissue
 from jaxhead.volume import LabelMap, default_affine
 
-HEADS = Path(__file__).resolve().parents[1] / ".." / ".." / "shared" / "data" / "heads"
-if not HEADS.exists():  # a worktree under /work/wt/<name> or the main checkout under /work/main
-    HEADS = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "heads"
+from shipped_heads import HEADS, needs_heads
+
 DEMO_SEG = Path(__file__).resolve().parent / "data" / "demo_mri_segment_2mm.nii.gz"
 
 #: |surface volume - voxel volume| <= VOLUME_TOL_VOXELS * voxel edge * surface area. The level-0.5
@@ -331,7 +330,7 @@ def test_hard_case(name):
         assert cut == [], name
 
 
-@pytest.mark.skipif(not (HEADS / "c1ANTS19-5Years_head.jnii").exists(), reason="no ANTs head")
+@needs_heads
 def test_ants_head_4mm():
     labels = ants_head(4)
     layers, lrep, surfaces, srep = check_case("ants", labels)
