@@ -107,6 +107,10 @@ DEFAULT_DENOISE = {"mri": False, "ct": True}
 #: way and MRI CSF on the MNI152 head fell 0.669 -> 0.650 and 0.591 -> 0.559 (a skull Gaussian kept
 #: alive on CSF's intensities); experiments/results/segmentation_weight_prior.md.
 DEFAULT_WEIGHT_PRIOR = {"mri": 0.0, "ct": 0.0}
+#: Inverse-gamma prior on each free Gaussian's variance, centred on its class's pooled variance, by
+#: default (em.map_variances: worth nu times the class's voxels). Off (maximum likelihood) for both;
+#: experiments/results/segmentation_variance_prior.md.
+DEFAULT_VARIANCE_PRIOR = {"mri": 0.0, "ct": 0.0}
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -165,6 +169,9 @@ class SegmentConfig:
         weight_prior: eta of the Dirichlet (MAP) prior on each class's within-class weights
             (`jaxhead.segmentation.em.map_weights`); 0 = maximum likelihood; None: the modality
             default (DEFAULT_WEIGHT_PRIOR).
+        variance_prior: nu of the inverse-gamma (MAP) prior on each free Gaussian's variance, centred on
+            its class's pooled variance (`jaxhead.segmentation.em.map_variances`); 0 = maximum
+            likelihood; None: the modality default (DEFAULT_VARIANCE_PRIOR).
         bone_majority: CT: relabel the bone surface by the partial-volume majority rule after the EM
             (`bone_majority`; ignored for MRI).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
@@ -192,6 +199,7 @@ class SegmentConfig:
     bone_majority: bool = True
     denoise: bool | None = None
     weight_prior: float | None = None
+    variance_prior: float | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -231,6 +239,13 @@ class SegmentConfig:
                 f"[segment] `weight_prior` must be a number >= 0 (0 = maximum likelihood) or None (modality "
                 f"default), got {self.weight_prior!r}."
             )
+        if self.variance_prior is not None and not (
+                isinstance(self.variance_prior, (int, float)) and not isinstance(self.variance_prior, bool)
+                and self.variance_prior >= 0):
+            raise ValueError(
+                f"[segment] `variance_prior` must be a number >= 0 (0 = maximum likelihood) or None (modality "
+                f"default), got {self.variance_prior!r}."
+            )
         if not isinstance(self.check_registration, (bool, np.bool_)):
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
@@ -259,11 +274,13 @@ class SegmentConfig:
                         pv.append(int(b if k == a else a))
         degree = DEFAULT_BIAS_DEGREE[self.modality] if self.bias_degree is None else self.bias_degree
         eta = DEFAULT_WEIGHT_PRIOR[self.modality] if self.weight_prior is None else self.weight_prior
+        nu = DEFAULT_VARIANCE_PRIOR[self.modality] if self.variance_prior is None else self.variance_prior
         return EMOptions(
             component_class=tuple(cc), n_classes=N_CLASSES, beta=float(self.beta), max_iter=self.max_iter,
             tol=float(self.tol), relax=float(self.relax), relax_sigma_vox=float(relax_sigma_vox),
             bias_degree=int(degree), bias_classes=tuple(range(1, N_CLASSES)),
             pv_of=tuple(pv) if self.partial_volume else (), pv_log=self.modality == "mri", weight_prior=float(eta),
+            variance_prior=float(nu),
         )
 
 
