@@ -623,8 +623,8 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     of the class likelihoods at the fitted parameters (posteriors under a uniform prior, no MRF, no
     relaxation) on the EM's sample grid, voxel weight = unmodelled x the classes' share of the
     likelihood. The sample grid, not the full one: the proportions of a region of 10^5-10^6 voxels are
-    as well determined from every k-th voxel, and at 1 mm the full grid costs seconds (measured:
-    4.4 s of 17 s of `classify`, benchmarks/segment.py)."""
+    as well determined from every k-th voxel, and at 1 mm the full grid costs seconds (profiled on
+    the case of benchmarks/segment.py: 4.4 s of 17 s of `classify`)."""
     dtype = _dtype(cfg)
     vox = voxel_sizes(volume.affine)
     stride = tuple(int(max(1, round(cfg.em_sample_mm / v))) for v in vox)
