@@ -143,6 +143,11 @@ def test_segment_config_per_tissue_gaussians():
     assert opts.weight_prior == 0.0 and SegmentConfig(weight_prior=0.2).em_options(1.0).weight_prior == 0.2
     with pytest.raises(ValueError, match="weight_prior"):
         SegmentConfig(weight_prior=-0.1)
+    # the variance prior likewise
+    assert opts.variance_prior == 0.0 and SegmentConfig(variance_prior=0.2).em_options(1.0).variance_prior == 0.2
+    for bad in (-0.1, True, "0.1"):
+        with pytest.raises(ValueError, match="variance_prior"):
+            SegmentConfig(variance_prior=bad)
 
 
 

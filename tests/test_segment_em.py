@@ -209,6 +209,7 @@ def test_jit_equals_eager_and_float32_path():
         (dict(component_class=(0, 1), n_classes=2, pv_of=(-1, 1)), "another class"),
         (dict(component_class=(0, 1, 1), n_classes=2, pv_of=(-1, 0, 0)), "only partial-volume"),
         (dict(component_class=(0, 1), n_classes=2, weight_prior=-0.1), "weight_prior"),
+        (dict(component_class=(0, 1), n_classes=2, variance_prior=-0.1), "variance_prior"),
     ],
 )
 def test_em_options_validation(kw, match):
@@ -302,27 +303,73 @@ def test_map_weights_closed_form_and_constrained_maximum():
     np.testing.assert_allclose(ml, [90 / 92, 2 / 92, 30 / 30.5, 0.5 / 30.5, 1.0], rtol=1e-12)
 
 
+def fit_squeezed_tissue(shape=SHAPE, **options):
+    """Class B has two tissues: B1 (10 +- 3) only where the atlas is undecided (prior 0.5), and B2
+    (100 +- 10) where it is sure; class A (14 +- 6) overlaps B1. The EM's parameters, with `options`
+    (EMOptions keywords) added."""
+    rng = np.random.default_rng(0)
+    x = np.broadcast_to((np.arange(shape[0])[:, None, None] + 0.5) / shape[0], shape)
+    region = np.where(x < 0.4, 0, np.where(x < 0.55, 2, 1))  # 0: A, 2: undecided (B1), 1: B2
+    y = np.where(region == 0, rng.normal(14, 6, shape),
+                 np.where(region == 2, rng.normal(10, 3, shape), rng.normal(100, 10, shape)))
+    pb = np.where(region == 0, 0.1, np.where(region == 2, 0.5, 0.9))
+    prior = jnp.asarray(np.stack([1 - pb, pb]))
+    init = MixtureParams(jnp.array([14.0, 10.0, 100.0]), jnp.array([36.0, 9.0, 100.0]), jnp.array([1.0, 0.25, 0.75]),
+                         jnp.zeros(0))
+    opts = EMOptions(component_class=(0, 1, 1), n_classes=2, max_iter=500, tol=1e-10, **options)
+    return fit_mixture(jnp.asarray(y), prior, opts, init).params
+
+
 def test_weight_prior_keeps_a_squeezed_tissue_gaussian_from_collapsing():
     # Class B has two tissues: B1 (10 +- 3) only where the atlas is undecided (prior 0.5), and B2
     # (100 +- 10) where it is sure; class A (14 +- 6) overlaps B1. Maximum likelihood empties B1's
     # Gaussian (its share of the undecided voxels shrinks with its weight, which shrinks with its
     # share: w -> 0, its variance to a spike); the Dirichlet prior keeps its weight above
     # eta / ((1 + eta) F) and the Gaussian on B1's intensities.
-    rng = np.random.default_rng(0)
-    x = np.broadcast_to((np.arange(SHAPE[0])[:, None, None] + 0.5) / SHAPE[0], SHAPE)
-    region = np.where(x < 0.4, 0, np.where(x < 0.55, 2, 1))  # 0: A, 2: undecided (B1), 1: B2
-    y = np.where(region == 0, rng.normal(14, 6, SHAPE),
-                 np.where(region == 2, rng.normal(10, 3, SHAPE), rng.normal(100, 10, SHAPE)))
-    pb = np.where(region == 0, 0.1, np.where(region == 2, 0.5, 0.9))
-    prior = jnp.asarray(np.stack([1 - pb, pb]))
-    init = MixtureParams(jnp.array([14.0, 10.0, 100.0]), jnp.array([36.0, 9.0, 100.0]), jnp.array([1.0, 0.25, 0.75]),
-                         jnp.zeros(0))
-
-    def fit(eta):
-        opts = EMOptions(component_class=(0, 1, 1), n_classes=2, max_iter=500, tol=1e-10, weight_prior=eta)
-        return fit_mixture(jnp.asarray(y), prior, opts, init).params
-
-    ml, mp = fit(0.0), fit(0.1)
+    ml, mp = fit_squeezed_tissue(), fit_squeezed_tissue(weight_prior=0.1)
     assert float(ml.weights[1]) < 1e-3, ml.weights  # collapsed without the prior
     assert float(mp.weights[1]) >= 0.1 / (1.1 * 2), mp.weights
     assert abs(float(mp.means[1]) - 10.0) < 3.0 and float(mp.variances[1]) > 0.5, (mp.means, mp.variances)
+
+
+def test_map_variances_closed_form_and_constrained_maximum():
+    # classes 0 (two free Gaussians), 1 (one free, one tied partial-volume), 2 (one free)
+    from scipy.optimize import minimize_scalar
+
+    from jaxhead.segmentation.em import map_variances
+
+    nu = 0.3
+    opts = EMOptions(component_class=(0, 0, 1, 1, 2), n_classes=3, pv_of=(-1, -1, -1, 0, -1), variance_prior=nu)
+    n = np.array([90.0, 2.0, 30.0, 0.5, 7.0])
+    s = np.array([0.5, 1e-4, 2.0, 0.7, 3.0])  # maximum-likelihood variances (scatter / count)
+    v = np.asarray(map_variances(jnp.asarray(n), jnp.asarray(s), opts))
+    # independently: maximise the log posterior -(n/2 + alpha + 1) log v - (S/2 + beta) / v of each free
+    # Gaussian, with 2 alpha + 2 = nu N_k / F_k and 2 beta = (2 alpha + 2) V_k, V_k the pooled variance
+    for j, (tot, f, pooled) in {0: (92, 2, (90 * 0.5 + 2 * 1e-4) / 92), 1: (92, 2, (90 * 0.5 + 2 * 1e-4) / 92),
+                               2: (30.5, 1, 2.0), 4: (7, 1, 3.0)}.items():
+        a = nu * tot / f
+        alpha, beta = a / 2 - 1, a * pooled / 2
+
+        def neg(lv, j=j, alpha=alpha, beta=beta):
+            return (n[j] / 2 + alpha + 1) * lv + (n[j] * s[j] / 2 + beta) * np.exp(-lv)
+
+        ref = np.exp(minimize_scalar(neg, bounds=(-15, 5), method="bounded", options={"xatol": 1e-12}).x)
+        np.testing.assert_allclose(v[j], ref, rtol=1e-6)
+    assert v[3] == s[3]  # the tied partial-volume Gaussian is left to _tie_partial_volume
+    assert v[1] > 0.3  # an emptied Gaussian tends to its class's pooled variance (0.49), not its own 1e-4
+    # nu = 0 is maximum likelihood
+    ml = map_variances(jnp.asarray(n), jnp.asarray(s), EMOptions(component_class=(0, 0, 1, 1, 2), n_classes=3))
+    np.testing.assert_array_equal(np.asarray(ml), s)
+
+
+def test_variance_prior_keeps_an_emptied_gaussian_from_collapsing_to_a_spike():
+    # The setting of the weight-prior test above: under maximum likelihood class B's first Gaussian is
+    # emptied (weight -> 0) and its variance collapses onto the few voxels it keeps (sd well under the
+    # data's 3-10); a density spike that can outbid the class's real Gaussians at one intensity. With
+    # the inverse-gamma prior its variance tends to the class's pooled variance instead.
+    ml, mp = fit_squeezed_tissue(), fit_squeezed_tissue(variance_prior=0.1)
+    assert float(ml.weights[1]) < 1e-3 and float(ml.variances[1]) < 1.0, (ml.weights, ml.variances)  # spike
+    assert float(mp.variances[1]) > 0.5 * float(mp.variances[2]), mp.variances  # ~ the class's pooled variance
+    # the populated Gaussians keep their own widths
+    np.testing.assert_allclose(np.sqrt(np.asarray(mp.variances)[[0, 2]]), np.sqrt(np.asarray(ml.variances)[[0, 2]]),
+                               rtol=0.02)

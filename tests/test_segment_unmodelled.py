@@ -77,6 +77,10 @@ def test_with_proportions_moves_only_the_region_and_keeps_the_sum():
     np.testing.assert_allclose(q[k][:, 1], pi[:, None, None] * s, rtol=1e-12)  # u = 1: the proportions
     mid = (1 - u[2]) * p[k][:, 2] + u[2] * pi[:, None, None] * p[k][:, 2].sum(0)
     np.testing.assert_allclose(q[k][:, 2], mid, rtol=1e-12)
+    # float32 priors (segment's) stay float32, equal to the float64 result to float32 rounding
+    q32 = with_proportions(p.astype(np.float32), u.astype(np.float32), pi)
+    assert q32.dtype == np.float32 and q.dtype == np.float64
+    np.testing.assert_allclose(q32, q, rtol=1e-6, atol=1e-7)
 
 
 def test_under_or_beside_against_a_loop():

@@ -91,6 +91,9 @@ class EMOptions:
         mean_order: pairs (j_low, j_high, margin): the M-step keeps mu_{j_low} <= mu_{j_high} - margin
             (margin >= 0 in data units; the MAP under a flat prior on the ordered means, see
             `ordered_means`). Each Gaussian in at most one pair; free Gaussians only. Empty: no order.
+        variance_prior: nu >= 0 of the inverse-gamma prior on each free Gaussian's variance, centred
+            on its class's pooled variance (MAP instead of maximum likelihood; see `map_variances`).
+            0 = maximum likelihood.
     """
 
     component_class: tuple[int, ...]
@@ -110,6 +113,7 @@ class EMOptions:
     pv_log: bool = False
     weight_prior: float = 0.0
     mean_order: tuple[tuple[int, int, float], ...] = ()
+    variance_prior: float = 0.0
 
     def __post_init__(self):
         cc = tuple(self.component_class)
@@ -144,6 +148,8 @@ class EMOptions:
             raise ValueError(f"`bias_degree` must be >= 0, got {self.bias_degree}.")
         if not self.weight_prior >= 0:
             raise ValueError(f"`weight_prior` must be >= 0 (0 = maximum likelihood), got {self.weight_prior}.")
+        if not self.variance_prior >= 0:
+            raise ValueError(f"`variance_prior` must be >= 0 (0 = maximum likelihood), got {self.variance_prior}.")
         if self.max_iter < 1 or self.min_iter < 0:
             raise ValueError(f"`max_iter` must be >= 1 and `min_iter` >= 0, got {self.max_iter}, {self.min_iter}.")
 
@@ -405,7 +411,8 @@ def _m_step(y, r, mu_old, opts: EMOptions, var_floor, var_old=None, scale=1.0):
         mu_c = ordered_means(mu, n / var_old, tuple((lo, hi, m / scale) for lo, hi, m in opts.mean_order))
         var = var + (mu_c - mu) ** 2  # sum_i r_ij (y_i - mu_c)^2 / n_j
         mu = mu_c
-    return mu, jnp.maximum(var, var_floor), map_weights(n, opts)
+    var = jnp.maximum(map_variances(n, var, opts), var_floor)
+    return mu, var, map_weights(n, opts)
 
 
 def ordered_means(means, precisions, order):
@@ -438,6 +445,51 @@ def ordered_means(means, precisions, order):
         bad = means[lo] > means[hi] - delta
         mu = mu.at[hi].set(jnp.where(bad, t, means[hi])).at[lo].set(jnp.where(bad, t - delta, means[lo]))
     return mu
+
+
+def map_variances(counts, variances, opts: EMOptions):
+    """Component variances: maximum likelihood, or MAP under an inverse-gamma prior centred on the class's
+    pooled variance.
+
+    Class k owns Gaussians G_k, F_k of them free, with soft counts n_j, maximum-likelihood variances
+    s_j (scatter S_j = n_j s_j about the new mean) and N_k = sum_{j in G_k} n_j. The pooled
+    within-class variance is V_k = sum_{j in G_k free} S_j / sum_{j in G_k free} n_j. With an
+    inverse-gamma prior IG(alpha_j, beta_j) on v_j, the M-step maximises
+    -(n_j / 2 + alpha_j + 1) log v_j - (S_j / 2 + beta_j) / v_j, whose maximiser is
+    v_j = (S_j + 2 beta_j) / (n_j + 2 alpha_j + 2) (the conjugate MAP M-step of a regularised Gaussian
+    mixture: Fraley & Raftery 2007, J. Classif. 24:155, eq. 7 with the mean prior off; Ormoneit &
+    Tresp 1998). Here 2 alpha_j + 2 = a_j = nu N_k / F_k and 2 beta_j = a_j V_k, nu =
+    `opts.variance_prior`:
+
+        v_j = (S_j + a_j V_k) / (n_j + a_j),
+
+    a prior worth nu times the class's own voxels (shared among its free Gaussians, as `map_weights`)
+    that says "a tissue Gaussian is about as wide as its class's others". A Gaussian with many voxels
+    keeps its own variance; one being emptied (n_j -> 0) tends to V_k instead of collapsing onto a
+    few voxels at the variance floor, where its density spike (w_j / sqrt(2 pi v_j)) outbids the
+    class's real Gaussians at one intensity. Tied partial-volume Gaussians are left as they are
+    (they are set from the pure ones afterwards). nu = 0 is maximum likelihood.
+
+    Arguments:
+        counts: (J,) soft counts n_j (> 0).
+        variances: (J,) maximum-likelihood variances s_j.
+        opts: EMOptions (its groups, free Gaussians and variance_prior).
+    Returns:
+        (J,) variances.
+    """
+    nu = opts.variance_prior
+    if nu == 0:
+        return variances
+    out = []
+    for g in opts.groups:
+        free = [j for j in g if opts.is_free(j)]
+        tot = functools.reduce(jnp.add, [counts[j] for j in g])
+        n_free = functools.reduce(jnp.add, [counts[j] for j in free])
+        pooled = functools.reduce(jnp.add, [counts[j] * variances[j] for j in free]) / n_free
+        a = nu * tot / len(free)
+        for j in g:
+            out.append((counts[j] * variances[j] + a * pooled) / (counts[j] + a) if opts.is_free(j) else variances[j])
+    return jnp.stack(out)
 
 
 def map_weights(counts, opts: EMOptions):

@@ -126,6 +126,10 @@ CSF_BRAIN_MARGIN_HU = 5.0
 #: Whether that order is imposed by default (MRI: never; intensities are relative and the order of
 #: CSF and brain depends on the weighting).
 DEFAULT_CSF_BELOW_BRAIN = {"mri": False, "ct": True}
+#: Inverse-gamma prior on each free Gaussian's variance, centred on its class's pooled variance, by
+#: default (em.map_variances: worth nu times the class's voxels). Off (maximum likelihood) for both;
+#: experiments/results/segmentation_variance_prior.md.
+DEFAULT_VARIANCE_PRIOR = {"mri": 0.0, "ct": 0.0}
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -187,6 +191,9 @@ class SegmentConfig:
         csf_below_brain: CT: keep the CSF class's first Gaussian mean CSF_BRAIN_MARGIN_HU below the
             brain class's first Gaussian mean (literature Hounsfield units; em.ordered_means). None: the
             modality default (DEFAULT_CSF_BELOW_BRAIN); True with an MRI is an error.
+        variance_prior: nu of the inverse-gamma (MAP) prior on each free Gaussian's variance, centred on
+            its class's pooled variance (`jaxhead.segmentation.em.map_variances`); 0 = maximum
+            likelihood; None: the modality default (DEFAULT_VARIANCE_PRIOR).
         bone_majority: CT: relabel the bone surface by the partial-volume majority rule after the EM
             (`bone_majority`; ignored for MRI).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
@@ -215,6 +222,7 @@ class SegmentConfig:
     denoise: bool | None = None
     weight_prior: float | None = None
     csf_below_brain: bool | None = None
+    variance_prior: float | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -264,6 +272,13 @@ class SegmentConfig:
                 "[segment] `csf_below_brain=True` needs modality='ct' (Hounsfield units); MRI intensities are "
                 "relative and their CSF/brain order depends on the weighting. Leave it None for an MRI."
             )
+        if self.variance_prior is not None and not (
+                isinstance(self.variance_prior, (int, float)) and not isinstance(self.variance_prior, bool)
+                and self.variance_prior >= 0):
+            raise ValueError(
+                f"[segment] `variance_prior` must be a number >= 0 (0 = maximum likelihood) or None (modality "
+                f"default), got {self.variance_prior!r}."
+            )
         if not isinstance(self.check_registration, (bool, np.bool_)):
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
@@ -294,12 +309,14 @@ class SegmentConfig:
         eta = DEFAULT_WEIGHT_PRIOR[self.modality] if self.weight_prior is None else self.weight_prior
         below = DEFAULT_CSF_BELOW_BRAIN[self.modality] if self.csf_below_brain is None else self.csf_below_brain
         order = ((cc.index(int(Tissue.CSF)), cc.index(int(Tissue.BRAIN)), CSF_BRAIN_MARGIN_HU),) if below else ()
+        nu = DEFAULT_VARIANCE_PRIOR[self.modality] if self.variance_prior is None else self.variance_prior
         return EMOptions(
             component_class=tuple(cc), n_classes=N_CLASSES, beta=float(self.beta), max_iter=self.max_iter,
             tol=float(self.tol), relax=float(self.relax), relax_sigma_vox=float(relax_sigma_vox),
             bias_degree=int(degree), bias_classes=tuple(range(1, N_CLASSES)),
             pv_of=tuple(pv) if self.partial_volume else (), pv_log=self.modality == "mri", weight_prior=float(eta),
             mean_order=order,
+            variance_prior=float(nu),
         )
 
 
@@ -628,21 +645,22 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
         (posteriors (5, x, y, z) float32 numpy, EMResult of the parameter fit (on the strided
         sample), EMOptions used, bias coordinates of the full grid).
     """
-    post, res, opts, coords, lik = _classify(volume, priors, cfg, likelihoods=unmodelled is not None)
+    post, res, opts, coords, pi = _classify(volume, priors, cfg, unmodelled)
     if unmodelled is not None:
-        priors = np.asarray(priors)
-        k = [int(c) for c in UNMODELLED_CLASSES]
-        pi = regional_proportions(lik[k], np.asarray(unmodelled) * lik[k].sum(0))
         log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
-                 [Tissue(c).name.lower() for c in k], np.round(pi, 3).tolist())
-        post, res, opts, coords, _ = _classify(volume, with_proportions(priors, unmodelled, pi), cfg)
+                 [Tissue(c).name.lower() for c in UNMODELLED_CLASSES], np.round(pi, 3).tolist())
+        post, res, opts, coords, _ = _classify(volume, with_proportions(np.asarray(priors), unmodelled, pi), cfg)
     return post, res, opts, coords
 
 
-def _classify(volume: Volume, priors, cfg: SegmentConfig, likelihoods: bool = False):
-    """`classify` with one set of priors; with `likelihoods` (a first pass), the class posteriors under
-    a uniform prior at the fitted parameters (no MRF, no relaxation: the normalised class likelihoods)
-    instead of the posteriors (None)."""
+def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
+    """`classify` with one set of priors. With `unmodelled` (a first pass), the proportions of
+    UNMODELLED_CLASSES in that region instead of the posteriors (None): `atlas.regional_proportions`
+    of the class likelihoods at the fitted parameters (posteriors under a uniform prior, no MRF, no
+    relaxation) on the EM's sample grid, voxel weight = unmodelled x the classes' share of the
+    likelihood. The sample grid, not the full one: the proportions of a region of 10^5-10^6 voxels are
+    as well determined from every k-th voxel, and at 1 mm the full grid costs seconds (profiled on
+    the case of benchmarks/segment.py: 4.4 s of 17 s of `classify`)."""
     dtype = _dtype(cfg)
     vox = voxel_sizes(volume.affine)
     stride = tuple(int(max(1, round(cfg.em_sample_mm / v))) for v in vox)
@@ -658,24 +676,28 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, likelihoods: bool = Fa
     opts = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox * np.asarray(stride))))
     coords_full = _coords(shape, padded, 1, dtype)
     coords_s = tuple(c[::s] for c, s in zip(coords_full, stride))
-    res = fit_mixture(y_full[sl], priors[(slice(None),) + sl], opts, None, coords_s)
+    priors_s = priors[(slice(None),) + sl]
+    res = fit_mixture(y_full[sl], priors_s, opts, None, coords_s)
     log.info(
         "segment (%s): EM %d iterations (converged %s), means %s", cfg.modality, int(res.n_iter),
         bool(res.converged), np.round(np.asarray(res.params.means), 3).tolist(),
     )
     crop = (slice(None),) + tuple(slice(0, n) for n in shape)
-    post = lik = None
-    if likelihoods:  # a first pass: only the likelihoods are used, so the MRF sweeps are skipped
+    post = pi = None
+    if unmodelled is not None:  # a first pass: only the proportions are used, so the MRF sweeps are skipped
         flat = replace(cfg.em_options(1.0), beta=0.0, relax=0.0)
-        uniform = jnp.full_like(priors, 1.0 / N_CLASSES)
-        lik = np.asarray(infer_posteriors(y_full, uniform, res.params, flat, 0, coords_full)[crop], dtype=np.float32)
+        uniform = jnp.full_like(priors_s, 1.0 / N_CLASSES)
+        k = [int(c) for c in UNMODELLED_CLASSES]
+        lik = np.asarray(infer_posteriors(y_full[sl], uniform, res.params, flat, 0, coords_s)[np.asarray(k)])
+        u = np.pad(np.asarray(unmodelled, np.float32), pad)[sl]  # the padding is outside the scan: weight 0
+        pi = regional_proportions(lik, u * lik.sum(0))
     elif all(s == 1 for s in stride):
         post = np.asarray(res.posteriors[crop], dtype=np.float32)  # the EM ran on the full grid
     else:
         opts_full = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox)))
         post = infer_posteriors(y_full, priors, res.params, opts_full, cfg.sweeps, coords_full)
         post = np.asarray(post[crop], dtype=np.float32)
-    return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape)), lik
+    return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape)), pi
 
 
 def segment_reported(volume: Volume, atlas: Atlas | None = None,
