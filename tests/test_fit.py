@@ -170,12 +170,15 @@ def test_free_offsets_fit_and_se_invariant_and_match_joint_fit(ref_model):
                            offsets="per_injection")
     b = fit_conductivities(ref_model, prot, m + c[prot.drive_index], init=default_sigma(),
                            noise_std=std, offsets="per_injection")
-    # The projection removes the offsets exactly (to round-off ~1e-16 |c| / std ~ 1e-12 in
-    # the residuals), so both fits take the same steps: estimates and SEs agree far below
-    # the solver's 1e-6 tolerance.
-    np.testing.assert_allclose(b.sigma, a.sigma, rtol=1e-8)
-    np.testing.assert_allclose(b.std_error, a.std_error, rtol=1e-8)
-    np.testing.assert_allclose(b.offsets - a.offsets, c, rtol=1e-8, atol=1e-12 * np.abs(c).max())
+    # The projection removes the offsets up to round-off: |W c| reaches ~4e5 against whitened
+    # residuals of order 1, so the two objectives differ by ~5e-11 in the residuals, and on a
+    # minimum this flat (standard errors 0.7-19 %) that moves the optimum by ~1e-6 relative, at any
+    # solver tolerance (seen in a fresh environment, jax 0.10.2; earlier environments rounded both alike).
+    # So: the same estimates far inside their standard errors, the same standard errors.
+    assert np.all(np.abs(b.sigma - a.sigma) <= 1e-4 * a.std_error)
+    np.testing.assert_allclose(b.sigma, a.sigma, rtol=1e-5)
+    np.testing.assert_allclose(b.std_error, a.std_error, rtol=1e-6)
+    np.testing.assert_allclose(b.offsets - a.offsets, c, rtol=1e-6, atol=1e-9 * np.abs(c).max())
     assert np.all(np.abs(a.sigma - TRUE) <= 4 * a.std_error)
     # Standard errors = the joint fit's with the offsets as explicit parameters: the
     # (sigma, offsets) Gauss-Newton matrix from the adjoint Jacobian, inverted, sigma block.
