@@ -158,7 +158,7 @@ def main(argv=None):
                          "(1 mm, cut at the neck; --voxel-mm and --modality ignored)")
     ap.add_argument("--modality", choices=("mri", "ct"), default="mri")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--threads", type=int, default=0, help="gmsh/fTetWild threads (0: all cores)")
+    ap.add_argument("--threads", type=int, default=0, help="gmsh/fTetWild threads (0: all cores; the library default is 1, repeatable)")
     ap.add_argument("--compare", type=str, default="gmsh,tetgen,ftetwild",
                     help="meshers to time on the same surfaces (installed ones only): gmsh, tetgen, "
                          f"ftetwild (MeshConfig's settings), ftetwild-fast ({FTETWILD_FAST})")

@@ -423,3 +423,19 @@ def test_ftetwild_leaves_the_working_directory_clean(tmp_path, monkeypatch):
                                optimize=False, quiet=True, num_threads=1)
     assert len(tets) > 0
     assert list(tmp_path.iterdir()) == []
+
+
+def test_default_gmsh_mesh_is_repeatable():
+    """The default (one mesher thread) gives the same mesh on every run. With threads=0 (both cores)
+    gmsh's parallel HXT refinement gave 108,678 / 108,621 / 108,678 tets on these spheres in three
+    runs, so this fails there about two times in three."""
+    pytest.importorskip("gmsh")
+    surfaces = {t: Surface(*_sphere(r, 4), t) for t, r in zip(TISSUES, (40.0, 45.0, 50.0, 55.0))}
+    refine = trimesh.creation.icosphere(subdivisions=1, radius=55.0).vertices[:12]
+    cfg = MeshConfig(mesher="gmsh", edge_mm=3.0, refine_points_mm=refine, refine_radius_mm=8.0,
+                     refine_edge_mm=1.5)
+    a, b = tetrahedralize(surfaces, cfg), tetrahedralize(surfaces, cfg)
+    assert a.tets.shape == b.tets.shape
+    np.testing.assert_array_equal(a.tets, b.tets)
+    np.testing.assert_array_equal(a.nodes, b.nodes)
+    np.testing.assert_array_equal(a.labels, b.labels)
