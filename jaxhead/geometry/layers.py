@@ -625,7 +625,7 @@ def _plug_tunnels(L: np.ndarray, k: int, vox, max_r: int, kept: np.ndarray | Non
     characteristic of the solid plus that of its complement (both diagonal conventions of
     :func:`_genus`), computed on the piece's bounding box grown by 2 voxels: every cell a piece
     adds or removes lies within one voxel of it, so the difference there is the difference of the
-    whole grid. For the brain (k = 1) the piece is first thinned to one cross-section
+    whole grid. For the brain (k = Tissue.BRAIN) the piece is first thinned to one cross-section
     (:func:`_thin_plug`, the same Euler gain) and widened by one voxel within the piece; the
     whole piece is added only if the widened part lost the gain.
 
@@ -656,7 +656,7 @@ def _plug_tunnels(L: np.ndarray, k: int, vox, max_r: int, kept: np.ndarray | Non
             sub = solid[win]
             if _euler_gain(sub, sub | piece) <= 0:
                 continue
-            if k == 1:
+            if k == Tissue.BRAIN:
                 # the brain's complement is the CSF the rules keep: add one cross-section of
                 # the channel, widened by one voxel (three voxels thick, thicker than rule
                 # ``thin``'s two: a one-voxel sheet presmooths into a sliver), not the piece
