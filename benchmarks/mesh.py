@@ -150,7 +150,8 @@ def _candidate(name: str, surfaces, cfg: MeshConfig, layers) -> dict:
             "report": rep}
 
 
-def main(argv=None):
+def build_parser() -> argparse.ArgumentParser:
+    """The benchmark's command line; its defaults are the library's (MeshConfig())."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--voxel-mm", type=float, default=2.0, help="phantom voxel size (2 mm; 1 mm for the fine head)")
     ap.add_argument("--head", choices=("phantom", "mni152"), default="phantom",
@@ -158,7 +159,10 @@ def main(argv=None):
                          "(1 mm, cut at the neck; --voxel-mm and --modality ignored)")
     ap.add_argument("--modality", choices=("mri", "ct"), default="mri")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--threads", type=int, default=0, help="gmsh/fTetWild threads (0: all cores; the library default is 1, repeatable)")
+    ap.add_argument("--threads", type=int, default=MeshConfig().threads,
+                    help="gmsh/fTetWild threads (default: the library's MeshConfig().threads = "
+                         f"{MeshConfig().threads}, which gives the same mesh on every run; 0: all "
+                         "cores, faster but not repeatable)")
     ap.add_argument("--compare", type=str, default="gmsh,tetgen,ftetwild",
                     help="meshers to time on the same surfaces (installed ones only): gmsh, tetgen, "
                          f"ftetwild (MeshConfig's settings), ftetwild-fast ({FTETWILD_FAST})")
@@ -170,8 +174,12 @@ def main(argv=None):
     ap.add_argument("--edge-mm", type=str, default=None,
                     help='JSON per-tissue edges, e.g. \'{"brain": 4, "csf": 2, "skull": 2.5, "scalp": 3}\'')
     ap.add_argument("--save", type=str, default=None, help="save the default mesh's nodes/tets/labels to this .npz")
-    a = ap.parse_args(argv)
-    print(f"load average at the start: {_load()}", flush=True)
+    return ap
+
+
+def main(argv=None):
+    a = build_parser().parse_args(argv)
+    print(f"load average at the start: {_load()}, gmsh/fTetWild threads {a.threads}", flush=True)
 
     t, cpu = {}, {}
 
