@@ -362,6 +362,26 @@ def test_growth_into_border_is_an_error():
     np.testing.assert_allclose(out.affine[:3, 3] + out.affine[:3, :3] @ lo, aff[:3, 3])
 
 
+def test_default_thickness_is_two_mm_at_one_mm_voxels():
+    """At 1 mm voxels a one-voxel shell is 1 mm thick, a quarter of the CSF surface's 4 mm edge,
+    and meshes into flat tets (hard_labels_mesh_1mm.md: skull on brain left 1038 tets below
+    scaled Jacobian 0.2); the default is max(MIN_SHELL_MM = 2 mm, one voxel). Skull directly on
+    the brain at 1 mm: the CSF the rules put between them is two voxels (2 mm) thick, checked by
+    a Euclidean distance transform; at 3 mm voxels the default stays one voxel."""
+    L, aff, r = spheres(radii=(10.0, 12.0, 16.0, 20.0), vox=1.0)
+    x = world_grid(L.shape, aff)[..., 0]
+    L[(L == int(Tissue.CSF)) & (x > 0)] = int(Tissue.SKULL)  # skull on the brain on one side
+    out, rep = make_layers_reported(LabelMap(L, aff), NO_CLOSING)
+    assert rep.min_thickness_mm == {Tissue.CSF: 2.0, Tissue.SKULL: 2.0, Tissue.SCALP: 2.0}
+    S = solids(out.labels)
+    d = ndi.distance_transform_edt(~S[1])  # mm: 1 mm voxels
+    assert d[~S[2]].min() > 2.0 - 1e-9  # every voxel within 2 mm of the brain is CSF (or brain)
+    # Where the CSF had been removed, it came back by taking brain (the skull did not move).
+    assert (out.labels[(x > 3.0) & (r > 10.0) & (r <= 16.0) & (L == int(Tissue.SKULL))] == int(Tissue.SKULL)).all()
+    assert_strictly_nested(out.labels)
+    assert LayerConfig().thicknesses([3.0, 3.0, 3.0]) == {t: 3.0 for t in (Tissue.CSF, Tissue.SKULL, Tissue.SCALP)}
+
+
 def test_config_validation():
     with pytest.raises(ValueError, match="min_thickness_mm"):
         LayerConfig(min_thickness_mm={"brain": 2.0})

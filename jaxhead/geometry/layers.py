@@ -70,7 +70,14 @@ does the same as explicit 3D rules, in this order, and counts every relabelled v
    34 cm^3, and the CSF shunt is what EIT is most sensitive to.
 6. ``thickness``: the same in mm: every voxel whose centre lies within ``min_thickness_mm[T]`` of
    the inner solid belongs to shell T (so the shell is at least that thick, rounded down to whole
-   voxels). CSF takes brain; skull and scalp grow outward.
+   voxels). CSF takes brain; skull and scalp grow outward. The default is one voxel or
+   ``MIN_SHELL_MM`` (2 mm), whichever is larger: a shell must not be much thinner than the
+   triangles of the surfaces that bound it (CSF 4 mm, brain 6 mm by default), or the constrained-
+   Delaunay meshers, which keep those triangles, fill it with flat tets that no improvement
+   mends (interface nodes only slide along their surfaces). One-voxel shells are 2 mm thick at
+   2 mm, where every case of the hard-label corpus meshes clean, and 1 mm at 1 mm, where a
+   one-voxel CSF over half the brain left 1038 tets below scaled Jacobian 0.2 after 218 s of
+   improvement (experiments/results/hard_labels_mesh_1mm.md).
 
 After rules 5 and 6 the solids are made hole-free and connected again (counted under the rule).
 All connectivity is face (6-) connectivity for both a solid and its complement, which errs
@@ -99,6 +106,11 @@ _CUBE = np.ones((3, 3, 3), dtype=bool)  # 26-neighbourhood (the paper's 3x3x3)
 _BLOCK = np.ones((2, 2, 2), dtype=bool)  # the thinnest solid piece kept by rule ``thin``
 _SHELLS = (Tissue.CSF, Tissue.SKULL, Tissue.SCALP)
 
+#: Default minimum shell thickness (mm) where a voxel is thinner: half the CSF surface's default
+#: edge (4 mm, ``jaxhead.geometry.surface``), so a tet between the two surfaces of a shell is at
+#: worst about half as high as it is wide (rule 6 in the module docstring).
+MIN_SHELL_MM = 2.0
+
 
 @dataclass(frozen=True, kw_only=True)
 class LayerConfig:
@@ -111,8 +123,10 @@ class LayerConfig:
             close, and 0 for the brain (its closing would fill the sulci: the module docstring,
             rule 1). 0 disables the closing. One number applies to all four, brain included.
         min_thickness_mm: minimum shell thickness per shell ("csf", "skull", "scalp"), one number
-            or a mapping; None or a missing key = one voxel (the largest voxel edge). The
-            nesting rule already gives every shell at least one voxel.
+            or a mapping; None or a missing key = ``MIN_SHELL_MM`` (2 mm) or one voxel (the
+            largest voxel edge), whichever is larger (rule 6 in the module docstring: thinner
+            shells mesh into flat tets). The nesting rule already gives every shell at least
+            one voxel.
         nesting: "face" (default): no voxel of a solid has a face neighbour outside the next
             solid out; "cube": no 26-neighbour (the seed paper's 3x3x3 rule; thicker shells,
             CSF taken from the brain wherever the brain is diagonal to the skull).
@@ -170,9 +184,9 @@ class LayerConfig:
 
     def thicknesses(self, voxel_mm) -> dict[Tissue, float]:
         """Minimum thickness per shell (CSF, SKULL, SCALP) in mm for this voxel size."""
-        one_voxel = float(np.max(voxel_mm))
+        default = max(MIN_SHELL_MM, float(np.max(voxel_mm)))
         given = per_tissue(self.min_thickness_mm, "min_thickness_mm", allowed=_SHELLS, allow_none=True, positive=False)
-        return {t: (one_voxel if v is None else v) for t, v in given.items()}
+        return {t: (default if v is None else v) for t, v in given.items()}
 
 
 @dataclass(frozen=True)
