@@ -17,7 +17,7 @@ from jaxhead.geometry.tetrahedralize import (
     tetrahedralize,
 )
 from jaxhead.geometry.surface import Surface
-from jaxhead.tissue import TISSUES
+from jaxhead.tissue import TISSUES, Tissue
 
 
 def _bipyramid(h):
@@ -327,3 +327,43 @@ def test_quality_matches_the_verdict_metrics():
     starts, ends = np.array([4, 0, 9, 9]), np.array([7, 2, 9, 12])
     np.testing.assert_array_equal(_ranges(starts, ends), [4, 5, 6, 0, 1, 9, 10, 11])
     assert len(_ranges(np.array([3]), np.array([3]))) == 0
+
+
+#: The star (10 CSF tets) of a free node of the 2 mm skull_hole case's mesh after the improvement
+#: step (gmsh, one thread, refined under 21 electrodes), node at the origin (mm): two of its tets
+#: at q = 0.187 stayed below the Table-2 limit through ten restarts.
+STUCK_STAR_NODES = np.array([
+    [-2.528161, -0.918944, -2.745737], [0.655422, -3.087413, -0.930794],
+    [1.109074, 0.528063, 2.647895], [-1.432920, 1.670849, 1.780336],
+    [-0.162009, 3.031601, 0.838580], [1.373766, 2.689029, 1.130356],
+    [2.132065, 2.313130, -2.348504], [0.0, 0.0, 0.0]])
+STUCK_STAR_TETS = np.array([
+    [2, 1, 3, 7], [0, 1, 7, 3], [2, 7, 5, 1], [0, 7, 1, 6], [7, 5, 1, 6],
+    [2, 7, 3, 4], [0, 7, 4, 3], [2, 4, 5, 7], [0, 4, 7, 6], [4, 5, 7, 6]])
+
+
+def test_random_candidates_reach_a_position_the_targets_miss():
+    """The relocation's three targets (mean ideal apex, worst tet's ideal apex, neighbour mean, at
+    four steps each) do not move this node; 64 random positions in a ball of half the star's mean
+    edge do, for each of three seeds: the star's worst tet rises above the limit, none is left
+    below it, and q matches the moved mesh (the acceptance rule of every relocation)."""
+    from jaxhead.geometry.improve import LIMIT, _incidence, _relocate, classify_nodes
+
+    tets = STUCK_STAR_TETS
+    labels = np.full(len(tets), int(Tissue.CSF))
+    cls = classify_nodes(tets, labels, len(STUCK_STAR_NODES))
+    assert cls[7] == -1 and np.all(cls[:7] == 3)  # the centre is free, the star's rim held
+    ptr, inc_t, inc_c = _incidence(tets, len(STUCK_STAR_NODES))
+    nodes = STUCK_STAR_NODES.copy()
+    q = tet_quality(nodes, tets)
+    assert 0.18 < q.min() < LIMIT and (q < LIMIT).sum() == 2
+    assert _relocate(nodes, tets, q, np.array([7]), cls, ptr, inc_t, inc_c, [None] * 4,
+                     np.random.default_rng(0), 0) == 0
+    for seed in range(3):
+        nodes = STUCK_STAR_NODES.copy()
+        q = tet_quality(nodes, tets)
+        moved = _relocate(nodes, tets, q, np.array([7]), cls, ptr, inc_t, inc_c, [None] * 4,
+                          np.random.default_rng(seed), 64)
+        assert moved == 1 and q.min() > LIMIT, (seed, q.min())
+        np.testing.assert_allclose(q, tet_quality(nodes, tets))
+        np.testing.assert_array_equal(nodes[:7], STUCK_STAR_NODES[:7])

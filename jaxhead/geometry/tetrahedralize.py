@@ -605,6 +605,11 @@ def region_seeds(surfs) -> np.ndarray:
 #: Restarts of the improvement step while tets stay outside the Table-2 limits (see the mesh stage).
 _IMPROVE_RESTARTS = 3
 
+#: Random positions per node and relocation that the restarts try besides the step's three
+#: targets (``improve_mesh(random_candidates=...)``): the tets a first pass leaves are those
+#: the targets cannot mend.
+_RESTART_RANDOM_CANDIDATES = 64
+
 
 def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -> tuple[TetMesh, MeshReport]:
     """Nested four-tissue tetrahedral mesh from the four nested surfaces, with a report.
@@ -737,15 +742,16 @@ def tetrahedralize_reported(surfaces: Mapping, cfg: MeshConfig = MeshConfig()) -
         nodes, tets, labels, improvement = improve_mesh(
             nodes, tets, labels, project, iterations=cfg.improve_iterations)
         # The step stops after a few cycles without progress; a tet it leaves below the Table-2
-        # limits is usually locked by its neighbours' order of treatment. Restart it (other
-        # random priorities, more cycles) at most _IMPROVE_RESTARTS times; each restart keeps
-        # its best state, so it never ends worse. Counted in the report, not silent.
+        # limits is usually locked by its neighbours' order of treatment or out of reach of the
+        # relocation's targets. Restart it (other random priorities, more cycles, random
+        # candidate positions) at most _IMPROVE_RESTARTS times; each restart keeps its best
+        # state, so it never ends worse. Counted in the report, not silent.
         restarts = 0
         while improvement["below_0.2_after"] and restarts < _IMPROVE_RESTARTS:
             restarts += 1
             nodes, tets, labels, again = improve_mesh(
                 nodes, tets, labels, project, iterations=cfg.improve_iterations,
-                seed=restarts, flip_cycles=12)
+                seed=restarts, flip_cycles=12, random_candidates=_RESTART_RANDOM_CANDIDATES)
             for k in ("nodes_moved", "rounds", "flips_2_3", "flips_3_2", "nodes_inserted",
                       "edges_split"):
                 improvement[k] += again[k]
