@@ -14,7 +14,7 @@ Truth = the tissue filling most of each voxel at the evaluation voxel size (frac
 
 Usage:
     .venv/bin/python experiments/segmentation_accuracy.py [--voxel-mm 2] [--modalities mri ct] \\
-        [--seeds 2] [--out experiments/results/segmentation_heldout]
+        [--seeds 2] [--config '{"beta": 0.3}'] [--out experiments/results/segmentation_heldout]
 
 Writes <out>.json (one row per scan) and <out>.md (per anatomy, modality, noise: mean and minimum
 Dice), atomically. Bars (issue 11, minimum over subjects): MRI >= 0.93 / 0.75 / 0.85 / 0.93,
@@ -90,7 +90,7 @@ def cases(modality: str, voxel_mm: float, n_seeds: int, heads: Path):
 def run(args) -> list[dict]:
     rows = []
     for modality in args.modalities:
-        cfg = SegmentConfig(modality=modality)
+        cfg = SegmentConfig(modality=modality, **(json.loads(args.config) if getattr(args, "config", None) else {}))
         for anat, atlas, noise, contrast, vol, truth in cases(modality, args.voxel_mm, args.seeds, Path(args.heads)):
             t = time.perf_counter()
             try:
@@ -148,6 +148,8 @@ def main(argv=None):
     p.add_argument("--seeds", type=int, default=2, help="contrasts per noise level (seed 0: default contrast)")
     p.add_argument("--modalities", nargs="+", default=["mri", "ct"], choices=["mri", "ct"])
     p.add_argument("--heads", default=str(HEADS), help="folder of the ANTs head (c1..c6 .jnii)")
+    p.add_argument("--config", default=None,
+                   help='SegmentConfig overrides as a JSON object, e.g. \'{"diploe_above_csf": true, "gaussians": {"csf": 1}}\'')
     p.add_argument("--out", default=None, help="path stem: write <out>.json and <out>.md, atomically")
     args = p.parse_args(argv)
     args.partial = (args.out[:-5] if args.out.endswith(".json") else args.out) + ".partial.json" if args.out else None

@@ -126,6 +126,32 @@ CSF_BRAIN_MARGIN_HU = 5.0
 #: Whether that order is imposed by default (MRI: never; intensities are relative and the order of
 #: CSF and brain depends on the weighting).
 DEFAULT_CSF_BELOW_BRAIN = {"mri": False, "ct": True}
+#: MRI: the M-step keeps the skull class's second Gaussian (the diploe's: free Gaussians start at the
+#: class's intensity quantiles, so the first is the dark compact tables, the second the brighter
+#: marrow) at least DIPLOE_ABOVE_CSF_LOG above the CSF class's first ("pure", darkest) Gaussian, in
+#: log intensity (em.ordered_means; `diploe_above_csf`). The physics of a T1-weighted scan: compact
+#: bone gives almost no signal (T2* < 1 ms, little free water), so the tables are darker than CSF;
+#: the diploe is marrow, mostly fat in an adult calvarium (T1 ~ 250-370 ms at 1.5-3 T against CSF's
+#: 3,500-4,500 ms; red marrow ~ 550-600 ms), so it is brighter than CSF on any T1 weighting (Bushberg
+#: et al. 2012, The Essential Physics of Medical Imaging, 3rd ed., Table 12-2; Stanisz et al. 2005,
+#: Magn. Reson. Med. 54:507, Table 1; Vande Berg et al. 1998, Radiology 208:153 for marrow). A skull
+#: Gaussian between the two is partial volume of the tables with CSF or scalp, which the tables'
+#: Gaussian widens to cover. What the order rules out is the capture of
+#: experiments/results/segmentation_variance_prior.md: a skull Gaussian sitting on pure-CSF
+#: intensity where another head's atlas puts skull on this head's CSF, which explains CSF there as
+#: well as the CSF class does. The margin log(1.25): the diploe at least a quarter brighter than CSF
+#: (fat, red marrow and the phantom's diploe are 1.4-20 times CSF; a quarter leaves room for marrow
+#: voxels mixed with the tables). It constrains no tissue a synthetic scan of `templates.render`
+#: draws (its skull is one intensity, the tables' Gaussian's, in any order with CSF) and holds for
+#: the phantom's MRI (diploe 0.3-0.6, CSF 0.12-0.22 of white matter).
+DIPLOE_ABOVE_CSF_LOG = float(np.log(1.25))
+#: Whether that order is imposed by default. CT: never (its skull Gaussians are cortical bone and diploe
+#: in Hounsfield units, both far above CSF). MRI: off. Measured on the held-out heads (experiments/
+#: results/segmentation_mri_capture.md): with two CSF Gaussians it changes nothing (the CSF class's
+#: first Gaussian steps below and empties); with one (`gaussians={"csf": 1}`) MNI152 3 % CSF 0.669 ->
+#: 0.758 and skull 0.838 -> 0.857 (minimum), ANTs 3 % CSF 0.786 -> 0.807, but MNI152 8 % CSF 0.590 ->
+#: 0.557 and the phantom's 3 % scalp 0.783 -> 0.746.
+DEFAULT_DIPLOE_ABOVE_CSF = {"mri": False, "ct": False}
 #: Inverse-gamma prior on each free Gaussian's variance, centred on its class's pooled variance, by
 #: default (em.map_variances: worth nu times the class's voxels). Off (maximum likelihood) for both;
 #: experiments/results/segmentation_variance_prior.md.
@@ -191,6 +217,10 @@ class SegmentConfig:
         csf_below_brain: CT: keep the CSF class's first Gaussian mean CSF_BRAIN_MARGIN_HU below the
             brain class's first Gaussian mean (literature Hounsfield units; em.ordered_means). None: the
             modality default (DEFAULT_CSF_BELOW_BRAIN); True with an MRI is an error.
+        diploe_above_csf: MRI: keep the skull class's second Gaussian mean DIPLOE_ABOVE_CSF_LOG (log
+            intensity) above the CSF class's first Gaussian mean (T1 physics: fatty marrow brighter than
+            CSF; em.ordered_means). Needs >= 2 free skull Gaussians. None: the modality default
+            (DEFAULT_DIPLOE_ABOVE_CSF); True with a CT is an error.
         variance_prior: nu of the inverse-gamma (MAP) prior on each free Gaussian's variance, centred on
             its class's pooled variance (`jaxhead.segmentation.em.map_variances`); 0 = maximum
             likelihood; None: the modality default (DEFAULT_VARIANCE_PRIOR).
@@ -223,6 +253,7 @@ class SegmentConfig:
     weight_prior: float | None = None
     csf_below_brain: bool | None = None
     variance_prior: float | None = None
+    diploe_above_csf: bool | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -272,6 +303,22 @@ class SegmentConfig:
                 "[segment] `csf_below_brain=True` needs modality='ct' (Hounsfield units); MRI intensities are "
                 "relative and their CSF/brain order depends on the weighting. Leave it None for an MRI."
             )
+        if self.diploe_above_csf is not None and not isinstance(self.diploe_above_csf, (bool, np.bool_)):
+            raise ValueError(
+                f"[segment] `diploe_above_csf` must be true, false or None (modality default), got "
+                f"{self.diploe_above_csf!r}."
+            )
+        if self.diploe_above_csf and self.modality != "mri":
+            raise ValueError(
+                "[segment] `diploe_above_csf=True` needs modality='mri' (a T1-weighted log intensity order); in CT "
+                "both skull Gaussians lie hundreds of HU above CSF. Leave it None for a CT."
+            )
+        if self.diploe_above_csf and self.gaussians_per_class()[int(Tissue.SKULL)] < 2:
+            raise ValueError(
+                f"[segment] `diploe_above_csf=True` orders the skull class's second Gaussian, but `gaussians` gives "
+                f"skull {self.gaussians_per_class()[int(Tissue.SKULL)]}; give it >= 2 (tables, diploe) or leave "
+                "the order off."
+            )
         if self.variance_prior is not None and not (
                 isinstance(self.variance_prior, (int, float)) and not isinstance(self.variance_prior, bool)
                 and self.variance_prior >= 0):
@@ -309,6 +356,9 @@ class SegmentConfig:
         eta = DEFAULT_WEIGHT_PRIOR[self.modality] if self.weight_prior is None else self.weight_prior
         below = DEFAULT_CSF_BELOW_BRAIN[self.modality] if self.csf_below_brain is None else self.csf_below_brain
         order = ((cc.index(int(Tissue.CSF)), cc.index(int(Tissue.BRAIN)), CSF_BRAIN_MARGIN_HU),) if below else ()
+        diploe = DEFAULT_DIPLOE_ABOVE_CSF[self.modality] if self.diploe_above_csf is None else self.diploe_above_csf
+        if diploe:  # the skull's free Gaussians come first in its group, tables then diploe
+            order += ((cc.index(int(Tissue.CSF)), cc.index(int(Tissue.SKULL)) + 1, DIPLOE_ABOVE_CSF_LOG),)
         nu = DEFAULT_VARIANCE_PRIOR[self.modality] if self.variance_prior is None else self.variance_prior
         return EMOptions(
             component_class=tuple(cc), n_classes=N_CLASSES, beta=float(self.beta), max_iter=self.max_iter,
