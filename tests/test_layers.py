@@ -416,3 +416,31 @@ def test_sulcus_one_voxel_wide_stays_csf():
     assert (closed.labels[groove] == 1).mean() > 0.5
     assert_strictly_nested(out.labels)
     assert_counts_add_up(L, out.labels, rep)
+
+
+def test_brain_is_closed_when_the_tunnel_rule_leaves_it_a_handle(monkeypatch):
+    """Fallback of make_layers_reported: a handle the tunnel rule cannot remove (simulated by a rule
+    that plugs and cuts nothing) makes the default run close the brain too, counted in the report;
+    an explicit closing radius gets no fallback."""
+    import jaxhead.geometry.layers as layers
+
+    L, aff, r = spheres()
+    xyz = world_grid(L.shape, aff)
+    c = xyz[0, L.shape[1] // 2, L.shape[2] // 2, 1:]  # a grid line near the centre
+    channel = (np.abs(xyz[..., 1] - c[0]) < VOX / 2) & (np.abs(xyz[..., 2] - c[1]) < VOX / 2) & (L <= 2)
+    L[channel] = 2  # a one-voxel CSF channel through the brain: brain genus 1
+    assert layers._genus(L == 1) == 1
+    monkeypatch.setattr(layers, "_plug_tunnels", lambda *a, **k: (0, 0))
+    out, rep = make_layers_reported(LabelMap(L, aff))
+    assert rep.brain_closed and rep.genus_after[Tissue.BRAIN] == 0
+    assert rep.closing_radius_mm[Tissue.BRAIN] == VOX
+    assert layers._genus((out.labels >= 1) & (out.labels <= 1)) == 0
+    assert channel.sum() > 10 and (out.labels[channel & (r < 20)] == 1).all()
+    assert rep.to_dict()["brain_closed"] is True and "brain closed" in str(rep)
+    assert_strictly_nested(out.labels)
+    assert_counts_add_up(L, out.labels, rep)
+    kept, rep_k = make_layers_reported(LabelMap(L, aff), LayerConfig(closing_radius_mm={"brain": 0.0, "csf": VOX,
+                                                                                      "skull": VOX, "scalp": VOX}))
+    assert not rep_k.brain_closed and rep_k.genus_after[Tissue.BRAIN] == 1
+    clean, rep_c = make_layers_reported(LabelMap(spheres()[0], aff))
+    assert not rep_c.brain_closed and rep_c.to_dict()["brain_closed"] is False

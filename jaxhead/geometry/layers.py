@@ -19,7 +19,8 @@ does the same as explicit 3D rules, in this order, and counts every relabelled v
    closing fills the sulci up to two radii wide with brain, i.e. removes the sulcal CSF (on the
    ANTs head at 2 mm 6164 voxels, 49 cm^3, a fifth of its CSF), and the brain is no shell
    whose pinholes shunt current; its tunnels are rule ``tunnels``' work, which plugs each with
-   one cross-section of its channel.
+   one cross-section of its channel. Where that rule leaves the brain a handle, the rules run
+   again with the brain closed too (default radii only; ``LayerReport.brain_closed``, a warning).
 2. ``ventricles``: CSF enclosed by brain (a cavity of the brain solid) becomes BRAIN
    (``ventricles="brain"``, the default: the nested-surface mesh has one brain solid) or is kept
    (``ventricles="keep"``: counted, and treated as part of the brain solid by later rules).
@@ -86,7 +87,7 @@ towards removing diagonal-only contacts and tunnels: both make non-manifold surf
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -215,6 +216,8 @@ class LayerReport:
             from the Euler characteristic of the voxel solid (closed cubes).
         nesting: the nesting rule used ("face" or "cube", :class:`LayerConfig`).
         thin: the thin-part rule used ("remove" or "keep").
+        brain_closed: True when the brain was closed because the tunnel rule left it handles
+            (the fallback of :func:`make_layers_reported`: default closing radii only).
     """
 
     shape: tuple[int, int, int]
@@ -235,6 +238,7 @@ class LayerReport:
     genus_after: Mapping[Tissue, int] = field(default_factory=dict)
     nesting: str = "face"
     thin: str = "remove"
+    brain_closed: bool = False
 
     def n_changed(self, rule: str | None = None, tissue: Tissue | str | int | None = None) -> int:
         """Voxels relabelled by `rule` (None: all rules), optionally only those to or from `tissue`."""
@@ -271,6 +275,7 @@ class LayerReport:
             "ventricles": self.ventricles,
             "nesting": self.nesting,
             "thin": self.thin,
+            "brain_closed": bool(self.brain_closed),
             "closing_radius_mm": {name(t): v for t, v in self.closing_radius_mm.items()},
             "min_thickness_mm": {name(t): v for t, v in self.min_thickness_mm.items()},
             "volumes_before_mm3": {name(t): v for t, v in self.volumes_before_mm3.items()},
@@ -297,7 +302,8 @@ class LayerReport:
         lines.append(f"  ventricle CSF enclosed by brain: {self.ventricle_voxels} voxels ({verb})")
         lines.append(f"  nesting: {self.nesting} neighbours; thin skull/scalp parts: {self.thin}")
         lines.append("  closing radius mm: " + ", ".join(
-            f"{t.name} {v:g}" for t, v in self.closing_radius_mm.items()))
+            f"{t.name} {v:g}" for t, v in self.closing_radius_mm.items())
+            + ("  (brain closed: the tunnel rule left it handles)" if self.brain_closed else ""))
         lines.append("  min thickness mm: " + ", ".join(
             f"{t.name} {v:g}" for t, v in self.min_thickness_mm.items()))
         for c in self.fov_cuts:
@@ -816,6 +822,28 @@ def make_layers_reported(labels: LabelMap, cfg: LayerConfig = LayerConfig()) -> 
     if not isinstance(cfg, LayerConfig):
         raise ValueError(f"`cfg` must be a LayerConfig, got {type(cfg).__name__}.")
     check_labels(labels, "labels", allow_border=cfg.fov_cut == "close")
+    layers, report = _make_layers(labels, cfg)
+    if cfg.closing_radius_mm is None and cfg.tunnels == "plug" and report.genus_after.get(Tissue.BRAIN, 0):
+        # Fallback, counted in the report: the default leaves the brain unclosed (rule 1) and relies
+        # on the tunnel rule, whose plugs and cuts are accepted piece by piece; a sulcal network can
+        # leave handles no single piece removes (the MNI152 head at 1 mm segmented with another
+        # head's atlas: genus 269 -> 2). The paper's closing of the brain as well removes them
+        # there (genus 39 before the tunnel rule, 0 after), at the cost of sulcal CSF up to two
+        # radii wide. Kept only if it leaves fewer handles.
+        r = cfg.closing_radii(labels.voxel_mm)[Tissue.SCALP]
+        closed, closed_report = _make_layers(labels, replace(cfg, closing_radius_mm=r))
+        g0, g1 = sum(report.genus_after.values()), sum(closed_report.genus_after.values())
+        log.warning("make_layers: the tunnel rule left the brain genus %d; closing the brain too (radius %g mm) "
+                    "leaves genus %s: %s", report.genus_after[Tissue.BRAIN], r,
+                    {t.name: g for t, g in closed_report.genus_after.items() if g} or 0,
+                    "kept" if g1 < g0 else "not kept")
+        if g1 < g0:
+            return closed, replace(closed_report, brain_closed=True)
+    return layers, report
+
+
+def _make_layers(labels: LabelMap, cfg: LayerConfig) -> tuple[LabelMap, LayerReport]:
+    """The rules of :func:`make_layers_reported` with these settings, once (no fallback)."""
     vox = labels.voxel_mm
     nest = _CROSS if cfg.nesting == "face" else _CUBE
     radii = cfg.closing_radii(vox)
