@@ -26,21 +26,18 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import segmentation_accuracy as SA  # noqa: E402
 
-from jaxhead.segmentation import SegmentConfig, register_atlas  # noqa: E402
-from jaxhead.segmentation.segment import classify, unmodelled_on_grid  # noqa: E402
+from segmentation_capture_diagnosis import dice4, scans as registered_scans  # noqa: E402
+
+from jaxhead.segmentation import SegmentConfig  # noqa: E402
+from jaxhead.segmentation.segment import classify  # noqa: E402
+from jaxhead.volume import Volume  # noqa: E402
 
 
 def main(argv):
     settings = eval(argv[0]) if argv else [{}]  # a list of SegmentConfig keyword dicts (trusted input)
-    cfg0 = SegmentConfig(modality="mri")
-    scans = []
-    for anat, atlas, noise, contrast, vol, truth in SA.cases("mri", 2.0, 2, Path(SA.HEADS)):
-        if anat == "phantom":
-            continue
-        tr, priors = register_atlas(vol, atlas, cfg0)
-        scans.append((anat, noise, contrast, vol, truth, np.asarray(priors), unmodelled_on_grid(vol, atlas, tr, cfg0)))
+    scans = [(s["anat"], s["noise"], s["contrast"], Volume(s["data"], s["affine"]), s["truth"], s["priors"], s["unm"])
+             for s in registered_scans(None)]  # registered once per scan, as the capture diagnosis does
     for kw in settings:
         cfg = SegmentConfig(modality="mri", **kw)
         t0 = time.perf_counter()
@@ -48,7 +45,7 @@ def main(argv):
         for anat, noise, contrast, vol, t, priors, unm in scans:
             post, res, _, _ = classify(vol, priors, cfg, unm)
             lab = post.argmax(0)
-            d = [2 * ((lab == k) & (t == k)).sum() / ((lab == k).sum() + (t == k).sum()) for k in range(1, 5)]
+            d = dice4(lab, t)
             p = res.params
             print(f"{anat} {noise} {contrast}: EM {int(res.n_iter)} iterations, Dice {np.round(d, 3).tolist()}, "
                   f"csf->skull {int(((t == 2) & (lab == 3)).sum())}, skull->csf {int(((t == 3) & (lab == 2)).sum())}, "

@@ -180,6 +180,12 @@ def _per_class(value, name: str) -> tuple[int, ...] | None:
     return tuple(out.get(k, -1) for k in range(N_CLASSES))
 
 
+def _check_optional_bool(name: str, value) -> None:
+    """A ValueError unless a SegmentConfig switch is true, false or None (the modality default)."""
+    if value is not None and not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"[segment] `{name}` must be true, false or None (modality default), got {value!r}.")
+
+
 @dataclass(frozen=True, kw_only=True)
 class SegmentConfig:
     """Settings of `segment`.
@@ -284,30 +290,19 @@ class SegmentConfig:
         check_atlas_kind(self.atlas, "[segment] atlas")
         if not isinstance(self.bone_majority, (bool, np.bool_)):
             raise ValueError(f"[segment] `bone_majority` must be true or false, got {self.bone_majority!r}.")
-        if self.denoise is not None and not isinstance(self.denoise, (bool, np.bool_)):
-            raise ValueError(
-                f"[segment] `denoise` must be true, false or None (modality default), got {self.denoise!r}."
-            )
+        _check_optional_bool("denoise", self.denoise)
         if self.weight_prior is not None and not (isinstance(self.weight_prior, (int, float)) and self.weight_prior >= 0):
             raise ValueError(
                 f"[segment] `weight_prior` must be a number >= 0 (0 = maximum likelihood) or None (modality "
                 f"default), got {self.weight_prior!r}."
             )
-        if self.csf_below_brain is not None and not isinstance(self.csf_below_brain, (bool, np.bool_)):
-            raise ValueError(
-                f"[segment] `csf_below_brain` must be true, false or None (modality default), got "
-                f"{self.csf_below_brain!r}."
-            )
+        _check_optional_bool("csf_below_brain", self.csf_below_brain)
         if self.csf_below_brain and self.modality != "ct":
             raise ValueError(
                 "[segment] `csf_below_brain=True` needs modality='ct' (Hounsfield units); MRI intensities are "
                 "relative and their CSF/brain order depends on the weighting. Leave it None for an MRI."
             )
-        if self.diploe_above_csf is not None and not isinstance(self.diploe_above_csf, (bool, np.bool_)):
-            raise ValueError(
-                f"[segment] `diploe_above_csf` must be true, false or None (modality default), got "
-                f"{self.diploe_above_csf!r}."
-            )
+        _check_optional_bool("diploe_above_csf", self.diploe_above_csf)
         if self.diploe_above_csf and self.modality != "mri":
             raise ValueError(
                 "[segment] `diploe_above_csf=True` needs modality='mri' (a T1-weighted log intensity order); in CT "
