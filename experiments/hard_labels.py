@@ -82,7 +82,7 @@ def mesh_one(name, labels, layers, surfaces) -> dict:
         poor_before=imp.get("below_0.2_before"), poor_after=imp.get("below_0.2_after"),
         flips=imp.get("flips_2_3", 0) + imp.get("flips_3_2", 0), edges_split=imp.get("edges_split", 0),
         nodes_inserted=imp.get("nodes_inserted", 0), nodes_moved=imp.get("nodes_moved", 0),
-        restarts=imp.get("restarts", 0),
+        restarts=imp.get("restarts", 0), repair_edges_bisected=imp.get("repair_edges_bisected", 0),
         nesting_violations=nesting_violations(mesh),
         tissues=sorted({int(x) for x in np.unique(mesh.labels)}),
         vol_err_layers=vol_layers, vol_err_input=vol_input,
