@@ -18,6 +18,10 @@ The refinement is printed as the mean edge of scalp tets near the electrodes and
     OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py                  # 2 mm, with fTetWild
     OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py --voxel-mm 1 --no-ftetwild
     OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py --head mni152 --electrodes 32 --no-ftetwild
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mesh.py --voxel-mm 1 --ftetwild-timeout 480
+
+`--ftetwild-timeout S` runs each fTetWild candidate in a child process and stops it after S seconds
+(reported as "did not finish in S s", with the ratios as lower bounds), so one run fits a time slot.
 
 The machine is shared: the load average is printed at the start and the end. Figures:
 experiments/results/meshers.md and the README's "Geometry" section.
@@ -29,6 +33,7 @@ import json
 import os
 import sys
 import time
+import warnings
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -133,11 +138,49 @@ def voxel_volume_errors(mesh, layers) -> dict:
     return {t: vols[t] / (float((lab == int(t)).sum()) * vox) - 1.0 for t in TISSUES}
 
 
-def _candidate(name: str, surfaces, cfg: MeshConfig, layers) -> dict:
-    """Mesh the surfaces with one mesher (and the improvement); its numbers for the table."""
+def _timed_tetrahedralize(surfaces, cfg: MeshConfig):
+    """tetrahedralize_reported with its wall and CPU seconds: (mesh, report, wall, cpu)."""
     w0, c0 = time.perf_counter(), time.process_time()
     mesh, rep = tetrahedralize_reported(surfaces, cfg)
-    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    return mesh, rep, time.perf_counter() - w0, time.process_time() - c0
+
+
+def _in_child(conn, surfaces, cfg):
+    conn.send(_timed_tetrahedralize(surfaces, cfg))
+    conn.close()
+
+
+def _tetrahedralize_limited(surfaces, cfg: MeshConfig, limit_s: float):
+    """_timed_tetrahedralize in a forked child process, stopped after `limit_s` seconds; None then.
+
+    The child runs NumPy and the mesher only (no JAX), so forking this JAX process is safe; its
+    CPU seconds are the child's own."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    parent, child = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_in_child, args=(child, surfaces, cfg), daemon=True)
+    with warnings.catch_warnings():  # JAX warns on every fork; the child does not use JAX
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called")
+        proc.start()
+    child.close()
+    out = parent.recv() if parent.poll(limit_s) else None
+    if out is None:
+        proc.terminate()
+    proc.join()
+    return out
+
+
+def _candidate(name: str, surfaces, cfg: MeshConfig, layers, limit_s: float | None = None) -> dict:
+    """Mesh the surfaces with one mesher (and the improvement); its numbers for the table, or
+    {"name", "timeout": limit_s} when it did not finish within `limit_s` seconds."""
+    if limit_s is None:
+        mesh, rep, wall, cpu = _timed_tetrahedralize(surfaces, cfg)
+    else:
+        out = _tetrahedralize_limited(surfaces, cfg, limit_s)
+        if out is None:
+            return {"name": name, "timeout": limit_s}
+        mesh, rep, wall, cpu = out
     row = quality_report(mesh).table2_row
     imp = rep.improvement
     return {"name": name, "mesher": rep.mesher, "wall": wall, "cpu": cpu,
@@ -148,6 +191,16 @@ def _candidate(name: str, surfaces, cfg: MeshConfig, layers) -> dict:
             "after": (row["jacobian"], row["scaled_jacobian"], row["distortion"], row["condition"]),
             "vol_err": voxel_volume_errors(mesh, layers), "agree": centroid_agreement(mesh, layers),
             "report": rep}
+
+
+def _row_line(r: dict) -> str:
+    """One mesher's row of the table (or that it did not finish)."""
+    if "timeout" in r:
+        return f"  {r['name']:<14s} did not finish in {r['timeout']:.0f} s (stopped)"
+    ve = "/".join(f"{100 * r['vol_err'][t]:+.1f}" for t in TISSUES)
+    return (f"  {r['name']:<14s} {r['wall']:8.1f} {r['raw']:7.1f} {r['improve']:7.1f} {r['tets']:8d} "
+            f"{r['sj_before']!s:>7s} {r['cond_before']!s:>7s} {'/'.join(map(str, r['after'])):>15s} "
+            f"{ve:>26s} {100 * r['agree']:5.1f}%")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -166,6 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--compare", type=str, default="gmsh,tetgen,ftetwild",
                     help="meshers to time on the same surfaces (installed ones only): gmsh, tetgen, "
                          f"ftetwild (MeshConfig's settings), ftetwild-fast ({FTETWILD_FAST})")
+    ap.add_argument("--ftetwild-timeout", type=float, default=None,
+                    help="stop each fTetWild candidate after this many seconds (run in a child process) "
+                         "and report it as not finished; default: no limit")
     ap.add_argument("--no-ftetwild", action="store_true",
                     help="leave fTetWild out of --compare (it takes ~2 min at 2 mm, ~10 min at 1 mm)")
     ap.add_argument("--electrodes", type=str, default="10-20",
@@ -249,15 +305,22 @@ def main(argv=None):
             continue
         ccfg = dataclasses.replace(cfg, mesher=mesher, **(FTETWILD_FAST if name == "ftetwild-fast" else {}))
         print(f"meshing the same surfaces with {name} ...", flush=True)
-        rows.append(_candidate(name, surfaces, ccfg, layers))
+        limit = a.ftetwild_timeout if mesher == "ftetwild" else None
+        rows.append(_candidate(name, surfaces, ccfg, layers, limit))
+        print(_row_line(rows[-1]), flush=True)
     print(f"\nmeshers on the same surfaces ({a.head}), load average now {_load()}:")
     print(f"  {'mesher':<14s} {'total s':>8s} {'raw s':>7s} {'impr s':>7s} {'tets':>8s} "
           f"{'SJ<0.2':>7s} {'cond>3':>7s} {'after J/SJ/D/C':>15s} {'vol err % B/C/S/Sc':>26s} {'agree':>6s}")
     for r in rows:
-        ve = "/".join(f"{100 * r['vol_err'][t]:+.1f}" for t in TISSUES)
-        print(f"  {r['name']:<14s} {r['wall']:8.1f} {r['raw']:7.1f} {r['improve']:7.1f} {r['tets']:8d} "
-              f"{r['sj_before']!s:>7s} {r['cond_before']!s:>7s} {'/'.join(map(str, r['after'])):>15s} "
-              f"{ve:>26s} {100 * r['agree']:5.1f}%")
+        print(_row_line(r))
+    unfinished = [r for r in rows if "timeout" in r]
+    rows = [r for r in rows if "timeout" not in r]
+    for r in unfinished:
+        if r["name"] == "ftetwild":
+            print(f"ratios: fTetWild did not finish in {r['timeout']:.0f} s: its tetrahedralize is more "
+                  f"than {r['timeout'] / t['tetrahedralize']:.1f}x the default's "
+                  f"({t['tetrahedralize']:.1f} s), its label map -> mesh more than "
+                  f"{(pipeline - t['tetrahedralize'] + r['timeout']) / pipeline:.1f}x")
     ftw = next((r for r in rows if r["name"] == "ftetwild"), None)
     print("ratios:")
     print(f"  default ({rep.mesher}) tetrahedralize {t['tetrahedralize']:.1f} s / its raw mesher "
