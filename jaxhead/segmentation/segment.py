@@ -60,7 +60,7 @@ from scipy import ndimage
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, voxel_sizes
 from .atlas import N_CLASSES, Atlas, check_atlas_kind, default_atlas, regional_proportions, with_proportions
-from .denoise import diffuse, noise_sd
+from .denoise import diffuse, noise_sd, rayleigh_noise_sd
 from .em import EMOptions, MixtureParams, bias_field, fit_mixture, infer_posteriors
 from .register import (
     AffineTransform, BSplineTransform, RegisterConfig, Transform, _level_factors, centre_of_mass, downsample, nmi,
@@ -432,10 +432,16 @@ def _check_inputs(volume, atlas, cfg):
 def _em_data(volume: Volume, modality: str, denoise: bool = False):
     """MRI: log intensity with a floor at 1e-3 of the 99th percentile; CT: HU. With `denoise`, the
     intensities (MRI: the magnitude, before the log) are first smoothed by `denoise.diffuse` with an
-    edge threshold of EDGE_FACTOR times their estimated noise sd."""
+    edge threshold of EDGE_FACTOR times their estimated noise sd (CT: `denoise.noise_sd`; MRI: the
+    Rician channel sd from the air, `denoise.rayleigh_noise_sd`, else `noise_sd` with a warning)."""
     d = volume.data
     if denoise:
-        sd = noise_sd(d)
+        sd = rayleigh_noise_sd(d) if modality == "mri" else noise_sd(d)
+        if sd is None:
+            log.warning("segment (mri): too little air around the head to measure the Rician noise from it "
+                        "(denoise.rayleigh_noise_sd); the edge threshold uses the neighbour-difference estimate "
+                        "instead (denoise.noise_sd: brain folding counts as noise, Rician air deflates it)")
+            sd = noise_sd(d)
         log.info("segment (%s): noise sd %.4g (intensity units), edge-preserving smoothing k = %.4g",
                  modality, sd, EDGE_FACTOR * sd)
         if sd > 0:
