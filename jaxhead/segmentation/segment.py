@@ -29,8 +29,10 @@ What the intensity model assumes (and what it learns from the scan):
   multiplicative bias field (Legendre polynomial, degree 4; tens of per cent), noise small against
   the tissue contrasts (a few per cent). CT: Hounsfield units (air near -1000), no bias field.
 - Tissue boundaries are smooth on the voxel scale (Potts MRF, beta).
-- CT (`denoise`): the noise is additive, roughly stationary and uncorrelated between voxels (its sd
-  is estimated from neighbour differences), and tissue steps of more than ~2 noise sd are edges.
+- `denoise`: the noise is uncorrelated between voxels and roughly stationary (CT: additive, its sd
+  estimated from neighbour differences; MRI: Rician magnitude, its channel sd estimated from the air
+  around the head, Rayleigh), and tissue steps of more than ~2 noise sd are edges (MRI: in the
+  magnitude, before the log, where the noise is the same in every tissue).
 - The scan is a head in the orientation its affine states (checked: `check_orientation`,
   `check_registration`).
 
@@ -99,8 +101,15 @@ PV_PAIRS = (
 #: Bias-field polynomial degree by default (MRI: Van Leemput et al. 1999 used 4th order; CT: none).
 DEFAULT_BIAS_DEGREE = {"mri": 4, "ct": 0}
 #: Noise-adaptive edge-preserving smoothing before the EM by default (denoise.py): CT on (brain and
-#: CSF differ by ~20-30 HU, comparable to CT noise); MRI off (measured in
-#: experiments/results/segmentation_heldout.md).
+#: CSF differ by ~20-30 HU, comparable to CT noise). MRI off: measured with the edge threshold from
+#: the Rician noise of the air (denoise.rayleigh_noise_sd) on the held-out MRI (experiments/results/
+#: segmentation_mri_noise.md; minimum Dice brain/CSF/skull/scalp, off -> on), it helps at 8 % noise
+#: (2 mm: ANTs 0.972/0.711/0.776/0.950 -> 0.964/0.727/0.854/0.972, MNI152 0.974/0.590/0.833/0.983 ->
+#: 0.968/0.656/0.854/0.977; 1 mm: both rows then meet every bar, ANTs skull 0.796 -> 0.902, MNI152
+#: CSF 0.677 -> 0.804) and at 2 mm on the MNI152 head at 3 % (CSF 0.669 -> 0.752, meets), but at 1 mm
+#: and 3 % it costs CSF (MNI152 0.808 -> 0.677, a met bar lost; ANTs 0.867 -> 0.788). Probably the
+#: mechanism measured at 2 mm (not checked per voxel at 1 mm): after smoothing, a flat tissue at high
+#: SNR is an intensity spike that a narrow Gaussian of another class can capture.
 DEFAULT_DENOISE = {"mri": False, "ct": True}
 #: Dirichlet prior on the within-class weights by default (em.map_weights: pseudo-counts of eta times
 #: the class's voxels, shared among its free Gaussians, so that no tissue Gaussian of a class is
