@@ -45,14 +45,14 @@ from jaxhead.segmentation.segment import _em_data, classify, unmodelled_on_grid 
 from jaxhead.volume import Volume  # noqa: E402
 
 
-def scans(cache: str | None):
+def scans(cache: str | None, phantom: bool = False):
     if cache and os.path.exists(cache):
         with open(cache, "rb") as f:
             return pickle.load(f)
     cfg0 = SegmentConfig(modality="mri")
     out = []
     for anat, atlas, noise, contrast, vol, truth in SA.cases("mri", 2.0, 2, Path(SA.HEADS)):
-        if anat == "phantom":
+        if anat == "phantom" and not phantom:
             continue
         tr, priors = register_atlas(vol, atlas, cfg0)
         out.append(dict(anat=anat, noise=noise, contrast=contrast, data=np.asarray(vol.data), affine=vol.affine,
@@ -122,8 +122,9 @@ def main(argv):
     ap.add_argument("--oracle", action="store_true")
     ap.add_argument("--blur", type=float, default=0.0)
     ap.add_argument("--cache", default=None, help="pickle of the registered scans (written if missing)")
+    ap.add_argument("--phantom", action="store_true", help="also the 4 phantom scans (when the cache is built)")
     args = ap.parse_args(argv)
-    cases = scans(args.cache)
+    cases = scans(args.cache, args.phantom)
     for kw in ast.literal_eval(args.settings):
         cfg = SegmentConfig(modality="mri", **kw)
         t0, mins = time.perf_counter(), {}

@@ -1,12 +1,16 @@
-"""Noise estimate and Perona-Malik smoothing (segmentation.denoise): against a NumPy reference,
-known noise, and invariants (conservation, noise-free images unchanged, edges kept, noise reduced)."""
+"""Noise estimates and Perona-Malik smoothing (segmentation.denoise): against a NumPy reference,
+known noise (Gaussian and Rician), scipy's Rayleigh distribution, and invariants (conservation,
+noise-free images unchanged, edges kept, noise reduced)."""
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy import stats
 
 from jaxhead.segmentation import SegmentConfig
-from jaxhead.segmentation.denoise import DT, diffuse, noise_sd
+from jaxhead.segmentation.denoise import DT, RAYLEIGH_CUT, diffuse, noise_sd, rayleigh_noise_sd
+from jaxhead.segmentation.segment import DENOISE_STEPS, EDGE_FACTOR, _em_data
+from jaxhead.volume import Volume, add_scanner_noise
 
 SHAPE = (30, 26, 28)
 
@@ -80,3 +84,55 @@ def test_denoise_setting_is_validated():
     assert SegmentConfig(modality="ct").denoise is None
     with pytest.raises(ValueError, match="denoise"):
         SegmentConfig(denoise="yes")
+
+
+def head_ball(n=40):
+    """A 'head' (1.0) with a dark core (0.12, skull-like) in air (0): 42 % of the grid is head."""
+    i, j, k = np.indices((n, n, n))
+    r = np.sqrt((i - n / 2) ** 2 + (j - n / 2) ** 2 + (k - n / 2) ** 2)
+    img = np.where(r < 0.375 * n, 1.0, 0.0)
+    return np.where(r < 0.175 * n, 0.12, img), r
+
+
+def test_rayleigh_noise_sd_recovers_rician_noise_where_neighbour_differences_do_not():
+    rng = np.random.default_rng(3)
+    img, _ = head_ball()
+    for sd in (0.03, 0.08, 0.2):  # the dark core's SNR 4, 1.5, 0.6
+        mag = add_scanner_noise(img, sd, "mri", rng)
+        assert abs(rayleigh_noise_sd(mag) / sd - 1) < 0.03, sd
+        # neighbour differences of Rayleigh air: ~0.64 of the channel sd (why the MRI needs its own)
+        assert noise_sd(mag) / sd < 0.8
+    # pure Rayleigh (all air): the fixed point is the Rayleigh scale; the truncated median factor
+    # against scipy's Rayleigh distribution
+    air = np.hypot(*rng.standard_normal((2, 30, 30, 30))) * 5.0
+    assert abs(rayleigh_noise_sd(air) / 5.0 - 1) < 0.02
+    c = RAYLEIGH_CUT
+    q = np.sqrt(-2 * np.log((1 + np.exp(-c * c / 2)) / 2))
+    assert q == pytest.approx(stats.rayleigh.ppf(stats.rayleigh.cdf(c) / 2), rel=1e-12)
+
+
+def test_rayleigh_noise_sd_needs_air_and_ignores_masked_zeros():
+    rng = np.random.default_rng(4)
+    img, r = head_ball()
+    assert rayleigh_noise_sd(img) is None  # noise-free: air exactly 0, no positive air voxel
+    tissue = add_scanner_noise(np.full((30, 30, 30), 1.0), 0.03, "mri", rng)
+    assert rayleigh_noise_sd(tissue) is None  # no air: the darkest tissue is not Rayleigh (KS test)
+    mag = add_scanner_noise(img, 0.05, "mri", rng)
+    mag[r > 17] = 0.0  # air masked to zero beyond a thin shell: the zeros are not counted
+    assert abs(rayleigh_noise_sd(mag) / 0.05 - 1) < 0.05
+    with pytest.raises(ValueError, match="cut"):
+        rayleigh_noise_sd(mag, cut=0.0)
+    with pytest.raises(ValueError, match="3-D image"):
+        rayleigh_noise_sd(np.ones((4, 4)))
+
+
+def test_mri_em_data_smooths_with_the_rayleigh_estimate():
+    rng = np.random.default_rng(5)
+    img, _ = head_ball(24)
+    vol = Volume(add_scanner_noise(img, 0.05, "mri", rng), np.eye(4))
+    got = _em_data(vol, "mri", denoise=True)
+    for est, same in ((rayleigh_noise_sd, True), (noise_sd, False)):
+        sm = np.asarray(diffuse(jnp.asarray(vol.data, jnp.float32), EDGE_FACTOR * est(vol.data), DENOISE_STEPS),
+                        np.float64)
+        ref = np.log(np.maximum(sm, 1e-3 * np.percentile(sm, 99)))
+        assert np.allclose(got, ref, atol=1e-6) == same

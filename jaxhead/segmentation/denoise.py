@@ -11,6 +11,17 @@ and its within-class weight goes to 0) and the priors alone decide.
   (Donoho & Johnstone 1994, Biometrika 81:425, the MAD estimate; here on first differences, which
   needs no wavelet). Edges are a minority of pairs and only inflate it slightly (MAD is robust);
   texture inside tissues is counted as noise. The median over the three axes.
+- `rayleigh_noise_sd`: the same for an MRI magnitude image, from the air around the head. Neighbour
+  differences are the wrong statistic there: a magnitude voxel of true signal A is Rician
+  (Gudbjartsson & Patz 1995, MRM 34:910), Rayleigh in air (A = 0), whose neighbour differences give
+  `noise_sd` 0.64 times the channel sd s, while inside the head the brain's folding at 1-2 mm voxels
+  counts as noise (held-out renders at 2 mm: `noise_sd` 0.80-0.97 s, the same MAD over pairs brighter
+  than 3 s 1.1-1.7 s). Air is pure noise: the Rayleigh median is s sqrt(2 ln 2), and the median of
+  the voxels below c s is s sqrt(-2 ln((1 + exp(-c^2 / 2)) / 2)) (the Rayleigh distribution truncated at
+  c s), so s is the fixed point of s = median(y | 0 < y < c s) / that factor (c = 2: 86 % of air
+  counted, tissue brighter than 2 s excluded); the median histogram-of-air idea of Sijbers et al.
+  2007, Phys. Med. Biol. 52:1335, without fitting a histogram. Exact zeros (masked or zero-filled
+  air) are not counted.
 - `diffuse`: Perona-Malik anisotropic diffusion (Perona & Malik 1990, IEEE TPAMI 12:629),
   du/dt = div(g(|grad u|) grad u), g(d) = exp(-(d / k)^2), explicit steps of dt = 1/7 over the
   6-neighbourhood (stable for dt <= 1/6), zero flux at the grid border. The edge threshold k is
@@ -34,6 +45,13 @@ from jax import lax
 DT = 1.0 / 7.0
 
 
+def _check_image(y) -> np.ndarray:
+    y = np.asarray(y, dtype=np.float64)
+    if y.ndim != 3 or min(y.shape) < 2:
+        raise ValueError(f"`y` must be a 3-D image with >= 2 voxels per axis, got shape {y.shape}.")
+    return y
+
+
 def noise_sd(y: np.ndarray) -> float:
     """Robust noise standard deviation of a 3-D image: 1.4826 MAD of neighbour differences / sqrt(2).
 
@@ -42,11 +60,67 @@ def noise_sd(y: np.ndarray) -> float:
     Returns:
         the estimate (image units); the median over the three axes.
     """
-    y = np.asarray(y, dtype=np.float64)
-    if y.ndim != 3 or min(y.shape) < 2:
-        raise ValueError(f"`y` must be a 3-D image with >= 2 voxels per axis, got shape {y.shape}.")
+    y = _check_image(y)
     est = [1.4826 * np.median(np.abs(np.diff(y, axis=ax))) / np.sqrt(2.0) for ax in range(3)]
     return float(np.median(est))
+
+
+#: `rayleigh_noise_sd`: the voxels below RAYLEIGH_CUT times the estimate are taken as air.
+RAYLEIGH_CUT = 2.0
+#: `rayleigh_noise_sd`: the least fraction of the positive voxels below the cut (else: no air to measure).
+MIN_AIR_FRACTION = 0.05
+#: `rayleigh_noise_sd`: the largest Kolmogorov-Smirnov distance of the voxels taken as air from the
+#: truncated Rayleigh distribution (sampling alone: < 0.05 from 10^3 voxels at the 1 % level; the
+#: rest allows for dark tissue among them).
+MAX_KS = 0.1
+#: `rayleigh_noise_sd` uses at most ~2x this many voxels (a strided subsample of a larger scan).
+MAX_VOXELS = 1_000_000
+
+
+def rayleigh_noise_sd(y: np.ndarray, cut: float = RAYLEIGH_CUT, max_iter: int = 200) -> float | None:
+    """Noise sd (per real/imaginary channel) of an MRI magnitude image, from its air (Rayleigh).
+
+    The fixed point of s = median(y | 0 < y < cut s) / sqrt(-2 ln((1 + exp(-cut^2 / 2)) / 2)),
+    iterated from the 1st percentile of the positive voxels (below s wherever air is >= 2 % of
+    them; each step moves up towards the fixed point) to a relative change < 1e-6.
+
+    Arguments:
+        y: (x, y, z) magnitude image (>= 0).
+        cut: voxels below cut times the estimate are taken as air (> 0).
+        max_iter: iterations at most.
+    Returns:
+        the estimate (image units), or None where there is no air to measure (a scan cropped to the
+        head, or with its air masked to zero; use `noise_sd`): fewer than MIN_AIR_FRACTION of the
+        positive voxels below the cut, or those voxels farther than MAX_KS (Kolmogorov-Smirnov) from
+        the truncated Rayleigh distribution.
+    """
+    y = _check_image(y)
+    if not cut > 0:
+        raise ValueError(f"`cut` must be > 0, got {cut!r}.")
+    v = y[y > 0]
+    if v.size == 0:
+        return None
+    v = v[:: max(1, v.size // MAX_VOXELS)]  # a regular subsample: the median of 10^6 is good to ~0.1 %
+    q = np.sqrt(-2.0 * np.log((1.0 + np.exp(-0.5 * cut * cut)) / 2.0))
+    s = float(np.percentile(v, 1.0))
+    for _ in range(max_iter):
+        below = v[v < cut * s]
+        if below.size == 0:
+            return None
+        new = float(np.median(below)) / q
+        done = abs(new - s) <= 1e-6 * s
+        s = new
+        if done:
+            break
+    air = np.sort(v[v < cut * s])
+    if air.size < MIN_AIR_FRACTION * v.size:
+        return None
+    # goodness of fit: the voxels taken as air follow the truncated Rayleigh distribution (largest
+    # CDF difference, Kolmogorov-Smirnov); a scan without air converges on its darkest tissue instead
+    air = air[:: max(1, air.size // 100_000)]
+    cdf = -np.expm1(-0.5 * (air / s) ** 2) / -np.expm1(-0.5 * cut * cut)
+    ks = np.max(np.abs(cdf - (np.arange(air.size) + 0.5) / air.size))
+    return float(s) if ks <= MAX_KS else None
 
 
 @functools.partial(jax.jit, static_argnames=("n_steps",))

@@ -29,8 +29,10 @@ What the intensity model assumes (and what it learns from the scan):
   multiplicative bias field (Legendre polynomial, degree 4; tens of per cent), noise small against
   the tissue contrasts (a few per cent). CT: Hounsfield units (air near -1000), no bias field.
 - Tissue boundaries are smooth on the voxel scale (Potts MRF, beta).
-- CT (`denoise`): the noise is additive, roughly stationary and uncorrelated between voxels (its sd
-  is estimated from neighbour differences), and tissue steps of more than ~2 noise sd are edges.
+- `denoise`: the noise is uncorrelated between voxels and roughly stationary (CT: additive, its sd
+  estimated from neighbour differences; MRI: Rician magnitude, its channel sd estimated from the air
+  around the head, Rayleigh), and tissue steps of more than ~2 noise sd are edges (MRI: in the
+  magnitude, before the log, where the noise is the same in every tissue).
 - The scan is a head in the orientation its affine states (checked: `check_orientation`,
   `check_registration`).
 
@@ -60,7 +62,7 @@ from scipy import ndimage
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, voxel_sizes
 from .atlas import N_CLASSES, Atlas, check_atlas_kind, default_atlas, regional_proportions, with_proportions
-from .denoise import diffuse, noise_sd
+from .denoise import diffuse, noise_sd, rayleigh_noise_sd
 from .em import EMOptions, MixtureParams, bias_field, fit_mixture, infer_posteriors
 from .register import (
     AffineTransform, BSplineTransform, RegisterConfig, Transform, _level_factors, centre_of_mass, downsample, nmi,
@@ -99,8 +101,15 @@ PV_PAIRS = (
 #: Bias-field polynomial degree by default (MRI: Van Leemput et al. 1999 used 4th order; CT: none).
 DEFAULT_BIAS_DEGREE = {"mri": 4, "ct": 0}
 #: Noise-adaptive edge-preserving smoothing before the EM by default (denoise.py): CT on (brain and
-#: CSF differ by ~20-30 HU, comparable to CT noise); MRI off (measured in
-#: experiments/results/segmentation_heldout.md).
+#: CSF differ by ~20-30 HU, comparable to CT noise). MRI off: measured with the edge threshold from
+#: the Rician noise of the air (denoise.rayleigh_noise_sd) on the held-out MRI (experiments/results/
+#: segmentation_mri_noise.md; minimum Dice brain/CSF/skull/scalp, off -> on), it helps at 8 % noise
+#: (2 mm: ANTs 0.972/0.711/0.776/0.950 -> 0.964/0.727/0.854/0.972, MNI152 0.974/0.590/0.833/0.983 ->
+#: 0.968/0.656/0.854/0.977; 1 mm: both rows then meet every bar, ANTs skull 0.796 -> 0.902, MNI152
+#: CSF 0.677 -> 0.804) and at 2 mm on the MNI152 head at 3 % (CSF 0.669 -> 0.752, meets), but at 1 mm
+#: and 3 % it costs CSF (MNI152 0.808 -> 0.677, a met bar lost; ANTs 0.867 -> 0.788). Probably the
+#: mechanism measured at 2 mm (not checked per voxel at 1 mm): after smoothing, a flat tissue at high
+#: SNR is an intensity spike that a narrow Gaussian of another class can capture.
 DEFAULT_DENOISE = {"mri": False, "ct": True}
 #: Dirichlet prior on the within-class weights by default (em.map_weights: pseudo-counts of eta times
 #: the class's voxels, shared among its free Gaussians, so that no tissue Gaussian of a class is
@@ -432,10 +441,16 @@ def _check_inputs(volume, atlas, cfg):
 def _em_data(volume: Volume, modality: str, denoise: bool = False):
     """MRI: log intensity with a floor at 1e-3 of the 99th percentile; CT: HU. With `denoise`, the
     intensities (MRI: the magnitude, before the log) are first smoothed by `denoise.diffuse` with an
-    edge threshold of EDGE_FACTOR times their estimated noise sd."""
+    edge threshold of EDGE_FACTOR times their estimated noise sd (CT: `denoise.noise_sd`; MRI: the
+    Rician channel sd from the air, `denoise.rayleigh_noise_sd`, else `noise_sd` with a warning)."""
     d = volume.data
     if denoise:
-        sd = noise_sd(d)
+        sd = rayleigh_noise_sd(d) if modality == "mri" else noise_sd(d)
+        if sd is None:
+            log.warning("segment (mri): too little air around the head to measure the Rician noise from it "
+                        "(denoise.rayleigh_noise_sd); the edge threshold uses the neighbour-difference estimate "
+                        "instead (denoise.noise_sd: brain folding counts as noise, Rician air deflates it)")
+            sd = noise_sd(d)
         log.info("segment (%s): noise sd %.4g (intensity units), edge-preserving smoothing k = %.4g",
                  modality, sd, EDGE_FACTOR * sd)
         if sd > 0:
