@@ -40,8 +40,9 @@ import numpy as np
 
 from ..volume import voxel_sizes
 from .em import (
-    EMOptions, MixtureParams, _component_densities, _mrf_prior, _normalise_prior, _relaxed_prior, _vsum, bias_field,
+    EMOptions, MixtureParams, _component_densities, _normalise_prior, _normalised, _relaxed_prior, _vsum, bias_field,
 )
+from .mrf import neighbour_sum
 from .register import (
     BSplineTransform, RegisterConfig, _axis_bases, _displacement, _grid_to_moving, _sample, bending_energy,
     minimise_coefficients,
@@ -60,8 +61,10 @@ class WarpProblem(eqx.Module):
         likelihoods: (K, x, y, z) class likelihoods L_ik exp(-m_i) (scaled so nothing underflows).
         log_scale: (x, y, z) m_i.
         relaxed: (K, x, y, z) the relaxation's fixed part a G_sigma * q (zeros without relaxation).
-        posteriors: (K, x, y, z) the EM's posteriors q (for the Potts factor).
-        relax, beta, prior_floor: the EM's settings.
+        potts: (K, x, y, z) the mean-field Potts factor exp(beta sum_neighbours q) of the EM's
+            posteriors q (ones without the MRF).
+        relax, prior_floor: the EM's settings.
+        head: (x, y, z) 1 where the EM's background posterior is < 1/2 (for the report), else 0.
         bending: lambda, the registration's bending-energy weight.
         spacing: (3,) control-point spacing in mm.
         shape: (x, y, z) of the sample grid.
@@ -75,9 +78,9 @@ class WarpProblem(eqx.Module):
     likelihoods: jax.Array
     log_scale: jax.Array
     relaxed: jax.Array
-    posteriors: jax.Array
+    potts: jax.Array
+    head: jax.Array
     relax: float = eqx.field(static=True)
-    beta: float = eqx.field(static=True)
     prior_floor: float = eqx.field(static=True)
     bending: float = eqx.field(static=True)
     spacing: tuple = eqx.field(static=True)
@@ -86,7 +89,7 @@ class WarpProblem(eqx.Module):
 
 def warp_problem(
     y, coords, params: MixtureParams, posteriors, opts: EMOptions, atlas_priors, atlas_affine,
-    transform: BSplineTransform, sample_affine, bending: float,
+    transform: BSplineTransform, sample_affine, bending: float, stride: int = 1,
 ) -> WarpProblem:
     """The fixed parts of the warp objective from a converged EM.
 
@@ -101,6 +104,9 @@ def warp_problem(
         transform: the registration (BSplineTransform; its coefficients are where the refinement starts).
         sample_affine: (4, 4) sample-grid voxel -> scan mm (axis-aligned with the scan's grid).
         bending: the bending-energy weight lambda.
+        stride: the objective sums over every `stride`-th voxel of the sample grid per axis (the
+            fixed parts are computed on the whole grid first, the Potts factor from each voxel's own
+            neighbours).
     Returns:
         WarpProblem.
     """
@@ -124,15 +130,21 @@ def warp_problem(
                                            opts.relax_sigma_vox))
     else:
         relaxed = jnp.zeros_like(q)
+    # the EM's _mrf_prior multiplies the prior by this and renormalises; q is held fixed, so is it
+    potts = jnp.exp(opts.beta * neighbour_sum(q)) if opts.beta > 0 else jnp.ones_like(q)
+    head = (q[0] < 0.5).astype(dtype)
+    sl = (slice(None),) + (slice(None, None, int(stride)),) * 3
+    lik, m, relaxed, potts, head = lik[sl], m[sl[1:]], relaxed[sl], potts[sl], head[sl[1:]]
+    sample_affine = np.asarray(sample_affine, np.float64) @ np.diag([stride, stride, stride, 1.0])
     grid_affine = np.asarray(transform.grid_affine, np.float64)
     grid_shape = tuple(transform.coefficients.shape[1:])
     return WarpProblem(
         priors=jnp.asarray(atlas_priors, dtype), atlas_affine=jnp.asarray(atlas_affine, dtype),
         affine=jnp.asarray(transform.affine, dtype),
-        bases=tuple(_axis_bases(grid_affine, grid_shape, y.shape, np.asarray(sample_affine, np.float64), dtype)),
+        bases=tuple(_axis_bases(grid_affine, grid_shape, m.shape, sample_affine, dtype)),
         sample_affine=jnp.asarray(sample_affine, dtype), likelihoods=lik, log_scale=m, relaxed=relaxed,
-        posteriors=q, relax=float(opts.relax), beta=float(opts.beta), prior_floor=float(opts.prior_floor),
-        bending=float(bending), spacing=tuple(float(s) for s in voxel_sizes(grid_affine)), shape=tuple(y.shape),
+        potts=potts, head=head, relax=float(opts.relax), prior_floor=float(opts.prior_floor),
+        bending=float(bending), spacing=tuple(float(s) for s in voxel_sizes(grid_affine)), shape=tuple(m.shape),
     )
 
 
@@ -152,7 +164,7 @@ def warp_objective(coefficients, problem: WarpProblem):
         prior = [(1.0 - problem.relax) * a + r for a, r in zip(atlas, problem.relaxed)]
     else:
         prior = atlas
-    prior = _mrf_prior(prior, list(problem.posteriors), problem.beta)
+    prior = _normalised([p * f for p, f in zip(prior, problem.potts)])  # em._mrf_prior with q fixed
     s = sum(p * lk for p, lk in zip(prior, problem.likelihoods))
     ll = problem.log_scale + jnp.log(jnp.maximum(s, jnp.finfo(s.dtype).tiny))
     n = np.prod(problem.shape)
@@ -177,8 +189,9 @@ def refine_warp(transform: BSplineTransform, problem: WarpProblem, cfg: Register
         step_mm: length of the solver's first step (about a sample voxel), mm.
     Returns:
         (transform with the refined coefficients, or the given one if the solve did not raise F;
-        dict: objective_before, objective_after, gain, steps, accepted, max_change_mm (largest change
-        of the displacement over the sample grid)).
+        dict: objective_before, objective_after, gain, steps, accepted, max_change_mm and rms_change_mm
+        (largest change of the displacement over the objective's grid, padding included; rms over the
+        head)).
     """
     c0 = jnp.asarray(transform.coefficients, problem.likelihoods.dtype)
     f0 = float(_objective_jit(c0, problem))
@@ -186,10 +199,11 @@ def refine_warp(transform: BSplineTransform, problem: WarpProblem, cfg: Register
                                            cfg.bspline_max_steps)
     f1 = -float(cost)
     accepted = bool(f1 > f0)  # Armijo steps only go up; anything else keeps the registration's warp
-    du = _displacement(c - c0, problem.bases)
+    du2 = jnp.sum(_displacement(c - c0, problem.bases) ** 2, 0) if accepted else jnp.zeros(problem.shape)
+    rms = jnp.sqrt(jnp.sum(du2 * problem.head) / jnp.maximum(jnp.sum(problem.head), 1.0))
     info = dict(objective_before=f0, objective_after=f1 if accepted else f0, gain=f1 - f0 if accepted else 0.0,
-                steps=int(steps), accepted=accepted,
-                max_change_mm=float(jnp.sqrt(jnp.max(jnp.sum(du**2, 0)))) if accepted else 0.0)
+                steps=int(steps), accepted=accepted, max_change_mm=float(jnp.sqrt(jnp.max(du2))),
+                rms_change_mm=float(rms))
     if not accepted:
         return transform, info
     return eqx.tree_at(lambda t: t.coefficients, transform, c.astype(transform.coefficients.dtype)), info
@@ -228,6 +242,7 @@ def alternate(
         objective=[[round(r["objective_before"], 6), round(r["objective_after"], 6)] for r in per_round],
         gain=float(sum(r["gain"] for r in adopted)),
         max_change_mm=[round(r["max_change_mm"], 3) for r in per_round],
+        rms_change_mm=[round(r["rms_change_mm"], 3) for r in per_round],
         steps=[r["steps"] for r in per_round],
     )
     return transform, fit, summary
