@@ -6,7 +6,10 @@ the 1 mm grid) is compared with the same algorithm in vectorised NumPy (float32,
 counts; timed for two iterations and extrapolated), and the ratio printed. Target: EM + MRF <= 20 s
 after compile.
 
-Usage: .venv/bin/python benchmarks/segment.py [--modality mri] [--seed 22] [--atlas mni152]
+With --refine-warp N the warp refinement on the EM's likelihood (`SegmentConfig.refine_warp`: N
+refinements, each followed by a new EM) is timed after the EM, first call and after compile.
+
+Usage: .venv/bin/python benchmarks/segment.py [--modality mri] [--seed 22] [--atlas mni152] [--refine-warp 1]
 (seed 22 is a phantom head that fits the 181 x 217 x 181 grid without its neck.)
 """
 
@@ -24,7 +27,7 @@ import numpy as np  # noqa: E402
 
 from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.segmentation import SegmentConfig, classify, default_atlas, register_atlas  # noqa: E402
-from jaxhead.segmentation.segment import _em_data, unmodelled_on_grid  # noqa: E402
+from jaxhead.segmentation.segment import _classify_all, _em_data, _refine_warp, unmodelled_on_grid  # noqa: E402
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
 
@@ -75,6 +78,7 @@ def main():
     p.add_argument("--seed", type=int, default=22)
     p.add_argument("--atlas", default="mni152", choices=["mni152", "phantom"],
                    help="default atlas: real anatomy (mni152, the product default) or the phantom atlas")
+    p.add_argument("--refine-warp", type=int, default=0, help="also time this many rounds of warp refinement")
     args = p.parse_args()
 
     print(f"jax {jax.__version__}, devices {jax.devices()}")
@@ -107,6 +111,18 @@ def main():
     dice = [2 * ((labels == k) & (truth.labels == k)).sum() / ((labels == k).sum() + (truth.labels == k).sum())
             for k in range(1, 5)]
     print("Dice brain, csf, skull, scalp:", np.round(dice, 3).tolist())
+    if args.refine_warp:
+        rcfg = SegmentConfig(modality=args.modality, atlas=args.atlas, refine_warp=args.refine_warp)
+        fit = _classify_all(vol, priors, rcfg, unmodelled)
+        for key in ("warp1", "warp2"):
+            (_, fit_r, summary), t_w = _timed(_refine_warp, vol, atlas, tr, fit, rcfg, key=key)
+            print(f"warp refinement ({args.refine_warp} round(s) at most, each + EM + MRF): "
+                  f"{'first call' if key == 'warp1' else 'after compile'} {t_w:.1f} s (CPU {CPU[key]:.1f} s); "
+                  f"{summary}; {_load()}")
+        labels = fit_r[0].argmax(0)
+        dice = [2 * ((labels == k) & (truth.labels == k)).sum() / ((labels == k).sum() + (truth.labels == k).sum())
+                for k in range(1, 5)]
+        print("Dice brain, csf, skull, scalp after the warp refinement:", np.round(dice, 3).tolist())
 
     # NumPy baseline of the same EM: time 2 iterations on the sample grid and 2 sweeps on the full grid
     stride = tuple(int(max(1, round(cfg.em_sample_mm / v))) for v in voxel_sizes(vol.affine))

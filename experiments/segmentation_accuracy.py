@@ -104,6 +104,8 @@ def run(args) -> list[dict]:
             d = dice_per_tissue(labels.labels, truth)
             rows.append(dict(anatomy=anat, atlas=atlas.name, modality=modality, noise=noise, contrast=contrast,
                              seconds=time.perf_counter() - t, nmi=seg.registration["nmi"], **d))
+            if "warp_refinement" in seg.registration:  # SegmentConfig.refine_warp
+                rows[-1]["warp_refinement"] = seg.registration["warp_refinement"]
             log.info("%s %s noise %g %s (atlas %s): %s (%.0f s)", anat, modality, noise, contrast, atlas.name,
                      {k: round(v, 3) for k, v in d.items()}, rows[-1]["seconds"])
             if getattr(args, "partial", None):  # rows so far, so that an interrupted run leaves them

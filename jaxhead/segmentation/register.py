@@ -582,31 +582,45 @@ def _ffd_cost(coefficients, args):
     return -sim + lam * bending_energy(coefficients, spacing)
 
 
-def _scaled_ffd_cost(coefficients, args):
-    scale, inner = args
-    dtype = inner[0].points.dtype
-    return (scale * _ffd_cost(coefficients.astype(dtype), inner)).astype(coefficients.dtype)
+def _scaled_cost(coefficients, args):
+    scale, cost, dtype, inner = args
+    return (scale * cost(coefficients.astype(dtype), inner)).astype(coefficients.dtype)
 
 
 @eqx.filter_jit
-def _solve_ffd(c0, data, kind, n_bins, lam, spacing, step_mm, rtol, atol, max_steps):
-    # The similarity changes by ~1e-4 per mm of one control point, so a plain first quasi-Newton
-    # step (-gradient, identity Hessian) would move nothing and the solver would stop at once.
-    # Scale the cost so that the first step moves the steepest control point by `step_mm` (about a
-    # voxel); L-BFGS's curvature pairs take over from there. The optimum is unchanged.
-    inner = (data, kind, n_bins, lam, spacing)
+def minimise_coefficients(cost, c0, args, step_mm, rtol, atol, max_steps):
+    """Minimise a cost of B-spline coefficients with L-BFGS, its first step moving them by ~`step_mm`.
+
+    Arguments:
+        cost: ``cost(coefficients, args) -> scalar`` (a module-level function: it is a static
+            argument of the compiled solver).
+        c0: (3, na, nb, nc) starting coefficients in mm; their dtype is the cost's.
+        args: pytree passed to `cost`.
+        step_mm: length of the first quasi-Newton step (the steepest control point's move), mm.
+        rtol, atol, max_steps: optimistix L-BFGS settings (Cauchy termination; at most max_steps).
+    Returns:
+        (coefficients (c0's dtype), steps taken, cost at them).
+    """
+    # An image similarity changes by ~1e-4 per mm of one control point, so a plain first
+    # quasi-Newton step (-gradient, identity Hessian) would move nothing and the solver would stop at
+    # once. Scale the cost so that the first step moves the steepest control point by `step_mm`
+    # (about a voxel); L-BFGS's curvature pairs take over from there. The optimum is unchanged.
     dtype = c0.dtype
-    g0 = jax.grad(_ffd_cost)(c0, inner)
+    g0 = jax.grad(cost)(c0, args)
     scale = step_mm / (jnp.max(jnp.abs(g0)) + jnp.finfo(dtype).tiny)
     # optimistix 0.1.0's L-BFGS allocates its history in the default float dtype, so with x64 on it
     # cannot run on float32 parameters: keep the optimiser's parameters in the default dtype and
     # evaluate the cost in the data's dtype.
     wide = jnp.result_type(float)
     solver = optx.LBFGS(rtol=rtol, atol=atol)
-    sol = optx.minimise(_scaled_ffd_cost, solver, c0.astype(wide), args=(scale.astype(wide), inner),
+    sol = optx.minimise(_scaled_cost, solver, c0.astype(wide), args=(scale.astype(wide), cost, dtype, args),
                         max_steps=max_steps, throw=False)
     value = sol.value.astype(dtype)
-    return value, sol.stats["num_steps"], _ffd_cost(value, inner)
+    return value, sol.stats["num_steps"], cost(value, args)
+
+
+def _solve_ffd(c0, data, kind, n_bins, lam, spacing, step_mm, rtol, atol, max_steps):
+    return minimise_coefficients(_ffd_cost, c0, (data, kind, n_bins, lam, spacing), step_mm, rtol, atol, max_steps)
 
 
 def bspline_register(

@@ -69,6 +69,7 @@ from .register import (
     register, resample,
 )
 from .templates import UNMODELLED_CLASSES
+from .warp_refine import alternate, warp_problem
 
 log = logging.getLogger(__name__)
 
@@ -165,6 +166,14 @@ DEFAULT_DIPLOE_ABOVE_CSF = {"mri": False, "ct": False}
 #: default (em.map_variances: worth nu times the class's voxels). Off (maximum likelihood) for both;
 #: experiments/results/segmentation_variance_prior.md.
 DEFAULT_VARIANCE_PRIOR = {"mri": 0.0, "ct": 0.0}
+#: Rounds of warp refinement on the EM's likelihood by default (`refine_warp`; warp_refine.py): 0 = off.
+DEFAULT_REFINE_WARP = {"mri": 0, "ct": 0}
+#: Most rounds of warp refinement `refine_warp` accepts (each costs a refinement and an EM).
+MAX_REFINE_WARP = 5
+#: The warp objective sums over every k-th voxel of the EM's sample grid, k = round(this / its voxel):
+#: 8x fewer points than the 2 mm sample (SPM samples its objective every 3 mm) at 27 per 12 mm
+#: control cell; on the full 2 mm sample a round cost ~55 s per 2 mm head (MNI152 MRI, 60 L-BFGS steps).
+WARP_SAMPLE_MM = 4.0
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -241,6 +250,11 @@ class SegmentConfig:
             likelihood; None: the modality default (DEFAULT_VARIANCE_PRIOR).
         bone_majority: CT: relabel the bone surface by the partial-volume majority rule after the EM
             (`bone_majority`; ignored for MRI).
+        refine_warp: after the EM, refine the atlas's B-spline warp on the EM's mixture likelihood and
+            re-run the EM on the re-warped priors, at most this many times (stopping when a refinement
+            raises the objective by less than `tol`; SPM's unified segmentation, see
+            `jaxhead.segmentation.warp_refine`); 0 = off; None: the modality default
+            (DEFAULT_REFINE_WARP). Needs the registration's B-spline stage.
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
             outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
             MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
@@ -269,6 +283,7 @@ class SegmentConfig:
     csf_below_brain: bool | None = None
     variance_prior: float | None = None
     diploe_above_csf: bool | None = None
+    refine_warp: int | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -330,10 +345,26 @@ class SegmentConfig:
                 f"[segment] `variance_prior` must be a number >= 0 (0 = maximum likelihood) or None (modality "
                 f"default), got {self.variance_prior!r}."
             )
+        if self.refine_warp is not None and (
+                isinstance(self.refine_warp, bool) or not isinstance(self.refine_warp, (int, np.integer))
+                or not 0 <= self.refine_warp <= MAX_REFINE_WARP):
+            raise ValueError(
+                f"[segment] `refine_warp` must be an integer 0..{MAX_REFINE_WARP} (rounds of warp refinement; 0 = off) "
+                f"or None (modality default), got {self.refine_warp!r}."
+            )
+        if self.refine_rounds() > 0 and not self.register.bspline:
+            raise ValueError(
+                f"[segment] `refine_warp={self.refine_rounds()}` refines the registration's B-spline warp, but "
+                "`register.bspline` is off; turn the B-spline stage on or set refine_warp=0."
+            )
         if not isinstance(self.check_registration, (bool, np.bool_)):
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
             raise ValueError("[segment] `atlas_voxel_mm` must be > 0 and `atlas_subjects` >= 1.")
+
+    def refine_rounds(self) -> int:
+        """Rounds of warp refinement (`refine_warp`, or the modality default)."""
+        return DEFAULT_REFINE_WARP[self.modality] if self.refine_warp is None else int(self.refine_warp)
 
     def gaussians_per_class(self) -> tuple[int, ...]:
         """Free Gaussians per class, ordered BACKGROUND, BRAIN, CSF, SKULL, SCALP (without the tied
@@ -705,12 +736,19 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
         (posteriors (5, x, y, z) float32 numpy, EMResult of the parameter fit (on the strided
         sample), EMOptions used, bias coordinates of the full grid).
     """
-    post, res, opts, coords, pi = _classify(volume, priors, cfg, unmodelled)
+    return _classify_all(volume, priors, cfg, unmodelled)[:4]
+
+
+def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
+    """`classify`, also returning the learnt unmodelled-region proportions (None without) and the EM's
+    sample (its data, bias coordinates and grid affine), for `_refine_warp`."""
+    post, res, opts, coords, pi, sample = _classify(volume, priors, cfg, unmodelled)
     if unmodelled is not None:
         log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
                  [Tissue(c).name.lower() for c in UNMODELLED_CLASSES], np.round(pi, 3).tolist())
-        post, res, opts, coords, _ = _classify(volume, with_proportions(np.asarray(priors), unmodelled, pi), cfg)
-    return post, res, opts, coords
+        post, res, opts, coords, _, sample = _classify(volume, with_proportions(np.asarray(priors), unmodelled, pi),
+                                                       cfg)
+    return post, res, opts, coords, pi, sample
 
 
 def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
@@ -757,7 +795,9 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
         opts_full = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox)))
         post = infer_posteriors(y_full, priors, res.params, opts_full, cfg.sweeps, coords_full)
         post = np.asarray(post[crop], dtype=np.float32)
-    return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape)), pi
+    sample_affine = np.asarray(volume.affine, np.float64) @ np.diag([*stride, 1.0])
+    sample = (y_full[sl], coords_s, sample_affine)
+    return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape)), pi, sample
 
 
 def segment_reported(volume: Volume, atlas: Atlas | None = None,
@@ -788,7 +828,10 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
     if cfg.check_registration:
         check_registration(summary, volume)
     t1 = time.perf_counter()
-    post, res, opts, coords = classify(volume, priors, cfg, unmodelled)
+    post, res, opts, coords, pi, sample = _classify_all(volume, priors, cfg, unmodelled)
+    if cfg.refine_rounds() > 0:
+        transform, (post, res, opts, coords, pi, sample), summary["warp_refinement"] = _refine_warp(
+            volume, atlas, transform, (post, res, opts, coords, pi, sample), cfg)
     if cfg.modality == "ct" and cfg.bone_majority:
         post, info = bone_majority(np.asarray(volume.data), post)
         log.info("segment (ct): bone majority rule %s", {k: round(v, 1) for k, v in info.items()})
@@ -806,6 +849,34 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
         bias_field=bias, n_iter=int(res.n_iter), converged=bool(res.converged), atlas_name=atlas.name,
         registration=summary,
     )
+
+
+def _refine_warp(volume: Volume, atlas: Atlas, transform: BSplineTransform, fit, cfg: SegmentConfig):
+    """Alternate warp refinement on the EM's likelihood and the EM (`warp_refine.alternate`), at most
+    `cfg.refine_rounds()` times. `fit` is `_classify_all`'s output. The priors of the warp objective are
+    the atlas's with the learnt unmodelled-region proportions applied on the atlas grid (where the EM
+    applies them after resampling: the two differ only within the trilinear interpolation).
+    Returns (transform, fit, summary for the run report)."""
+    t0 = time.perf_counter()
+
+    def make_problem(tr, fit):
+        _, res, opts, _, pi, (y_s, coords_s, sample_affine) = fit
+        priors = atlas.priors if pi is None else with_proportions(atlas.priors, atlas.unmodelled, pi)
+        return warp_problem(y_s, coords_s, res.params, res.posteriors, opts, priors, atlas.affine, tr,
+                            sample_affine, cfg.register.bending_energy, stride)
+
+    def refit(tr):
+        priors = resample(atlas.priors, atlas.affine, tr, volume.shape, volume.affine, dtype=_dtype(cfg))
+        return _classify_all(volume, priors, cfg, unmodelled_on_grid(volume, atlas, tr, cfg))
+
+    sample_vox = float(np.mean(voxel_sizes(fit[5][2])))
+    stride = max(1, round(WARP_SAMPLE_MM / sample_vox))
+    step = stride * sample_vox  # the solver's first step: about a voxel of the objective's grid
+    transform, fit, summary = alternate(transform, fit, make_problem, refit, cfg.refine_rounds(), cfg.register,
+                                        step, cfg.tol)
+    summary["seconds"] = round(time.perf_counter() - t0, 1)
+    log.info("segment (%s): warp refined on the EM likelihood: %s", cfg.modality, summary)
+    return transform, fit, summary
 
 
 def config_atlas(cfg: SegmentConfig) -> Atlas:
