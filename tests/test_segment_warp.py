@@ -11,7 +11,7 @@ from jaxhead.segmentation import Atlas, RegisterConfig, SegmentConfig, segment_r
 from jaxhead.segmentation.em import EMOptions, MixtureParams
 from jaxhead.segmentation.register import BSplineTransform, _displacement, control_grid, minimise_coefficients
 from jaxhead.segmentation.warp_refine import (
-    _negative_objective, refine_warp, warp_objective, warp_priors, warp_problem,
+    _negative_objective, change_penalty, refine_warp, warp_objective, warp_priors, warp_problem,
 )
 from jaxhead.volume import Volume, default_affine
 
@@ -50,23 +50,27 @@ def shifted_case(shift_mm, voxel=3.0, n=28, seed=0, dtype=jnp.float64):
     return aff, truth, jnp.asarray(y, dtype), priors, tr, params
 
 
-def problem_for(y, priors, aff, tr, params, opts, posteriors=None, bending=0.05):
+def problem_for(y, priors, aff, tr, params, opts, posteriors=None, bending=0.05, **kw):
     q = jnp.full((5, *y.shape), 0.2, y.dtype) if posteriors is None else posteriors
-    return warp_problem(y, None, params, q, opts, priors, aff, tr, aff, bending)
+    return warp_problem(y, None, params, q, opts, priors, aff, tr, aff, bending, **kw)
 
 
 def dice(a, b):
     return 2 * (a & b).sum() / (a.sum() + b.sum())
 
 
-def test_gradient_matches_central_differences():
-    # every term on: relaxation, Potts factor, bending energy; float64 (conftest enables x64)
+@pytest.mark.parametrize("change_mm", [float("inf"), 4.0])
+def test_gradient_matches_central_differences(change_mm):
+    # every term on: relaxation, Potts factor, bending energy, the change penalty (s = 4 mm, anchored
+    # at coefficients other than the start); float64 (conftest enables x64)
     aff, truth, y, priors, tr, params = shifted_case(3.0, voxel=4.0, n=16)
     opts = EMOptions(component_class=(0, 1, 2, 3, 4), n_classes=5, beta=0.4, relax=0.5, relax_sigma_vox=1.0)
     q = jnp.asarray(blurred_priors(truth, 0.7))
     rng = np.random.default_rng(1)
     c = jnp.asarray(rng.normal(scale=1.5, size=tr.coefficients.shape))  # away from the symmetric start
-    prob = problem_for(y, priors, aff, tr, params, opts, q)
+    anchor = jnp.asarray(rng.normal(scale=1.0, size=tr.coefficients.shape))
+    prob = problem_for(y, priors, aff, tr, params, opts, q, anchor=anchor, change_scale_mm=change_mm)
+    assert (float(change_penalty(c, prob)) > 1e-3) == np.isfinite(change_mm)
     f = jax.jit(warp_objective)
     g = np.asarray(jax.grad(warp_objective)(c, prob))
     # central differences along 6 coordinates and 2 random directions. Trilinear sampling is piecewise
@@ -124,6 +128,48 @@ def test_objective_never_decreases_along_the_solve():
     assert values[-1] > values[0] + 1e-3, values
 
 
+def test_change_penalty_of_a_uniform_shift():
+    # cubic B-splines sum to one, so moving every control point by d moves every sample point by d:
+    # the penalty is |d|^2 / (2 s^2) exactly, from any anchor
+    aff, _, y, priors, tr, params = shifted_case(0.0, voxel=4.0, n=12)
+    opts = EMOptions(component_class=(0, 1, 2, 3, 4), n_classes=5)
+    anchor = jnp.asarray(np.random.default_rng(2).normal(size=tr.coefficients.shape))
+    d = np.array([3.0, -1.0, 2.0])
+    for s in (2.0, 5.0):
+        prob = problem_for(y, priors, aff, tr, params, opts, anchor=anchor, change_scale_mm=s)
+        got = float(change_penalty(anchor + jnp.asarray(d)[:, None, None, None], prob))
+        assert got == pytest.approx(0.5 * d @ d / s**2, rel=1e-10)
+    prob = problem_for(y, priors, aff, tr, params, opts, anchor=anchor)  # default: no penalty
+    assert float(change_penalty(anchor + 5.0, prob)) == 0.0
+
+
+def test_change_penalty_bounds_the_drift_where_the_likelihood_is_flat():
+    # the scan's spheres sit 5 mm off the atlas's; in the air beyond the scalp (> 50 mm from the centre,
+    # >= 18 mm outside it) prior and likelihood are the same for every warp, so only the regulariser
+    # decides the displacement there. The bending energy is zero for a shift, and without the penalty
+    # the air follows the layers (measured: rms 3.9 mm, max 16.8 mm over the far region); with
+    # s = 4 mm it stays put (rms 0.04 mm, max 0.3 mm) while the layers still move towards the truth
+    # (mean x change over CSF/skull/scalp: -4.1 mm without, -0.95 mm with).
+    n = 36
+    aff, truth, y, priors, tr, params = shifted_case(5.0, voxel=3.0, n=n)
+    opts = EMOptions(component_class=(0, 1, 2, 3, 4), n_classes=5)
+    idx = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1)
+    far = np.linalg.norm(idx @ aff[:3, :3].T + aff[:3, 3], axis=-1) > 50.0
+    layers = truth >= 2
+    out = {}
+    for s in (float("inf"), 4.0):
+        prob = problem_for(y, priors, aff, tr, params, opts, change_scale_mm=s)
+        new, info = refine_warp(tr, prob, RegisterConfig(), step_mm=3.0)
+        assert info["accepted"]
+        u = np.asarray(_displacement(new.coefficients, prob.bases))
+        mag = np.linalg.norm(u, axis=0)
+        out[s] = (np.sqrt(np.mean(mag[far] ** 2)), mag[far].max(), u[0][layers].mean(), info)
+    assert out[float("inf")][0] > 2.0 and out[float("inf")][1] > 8.0, out  # the drift
+    assert out[4.0][0] < 0.2 and out[4.0][1] < 1.0, out  # bounded
+    assert out[4.0][2] < -0.5, out  # the layers still move the right way
+    assert out[4.0][3]["penalty"] > 0 and out[4.0][3]["rms_from_anchor_mm"] > 0
+
+
 def test_refine_warp_option_validated():
     for bad in (True, -1, 6, 1.5, "2"):
         with pytest.raises(ValueError, match="refine_warp"):
@@ -131,12 +177,22 @@ def test_refine_warp_option_validated():
     with pytest.raises(ValueError, match="register.bspline"):
         SegmentConfig(refine_warp=1, register=RegisterConfig(bspline=False))
     assert SegmentConfig().refine_rounds() == 0 and SegmentConfig(refine_warp=2).refine_rounds() == 2
+    for bad in (0, -2.0, float("nan"), True, "4", [4.0]):
+        with pytest.raises(ValueError, match="warp_change_mm"):
+            SegmentConfig(warp_change_mm=bad)
+    assert SegmentConfig(warp_change_mm=2).warp_change_scale() == 2.0
+    assert SegmentConfig(warp_change_mm=float("inf")).warp_change_scale() == float("inf")
     aff, _, y, priors, tr, params = shifted_case(0.0, voxel=4.0, n=12)
     opts = EMOptions(component_class=(0, 1, 2, 3, 4), n_classes=5)
     with pytest.raises(ValueError, match="BSplineTransform"):
         from jaxhead.segmentation.register import AffineTransform
         warp_problem(y, None, params, jnp.full((5, *y.shape), 0.2), opts, priors, aff,
                      AffineTransform(matrix=jnp.eye(4)), aff, 0.05)
+    for bad in (0.0, -1.0, float("nan"), None, True):
+        with pytest.raises(ValueError, match="change_scale_mm"):
+            problem_for(y, priors, aff, tr, params, opts, change_scale_mm=bad)
+    with pytest.raises(ValueError, match="anchor"):
+        problem_for(y, priors, aff, tr, params, opts, anchor=jnp.zeros((3, 2, 2, 2)))
 
 
 def test_segment_reported_reports_the_refinement():
@@ -158,5 +214,6 @@ def test_segment_reported_reports_the_refinement():
     assert 1 <= w["rounds"] <= 2 and w["refits"] <= w["rounds"] and w["gain"] >= 0
     assert all(after >= before for before, after in w["objective"])
     assert len(w["max_change_mm"]) == w["rounds"] and labels.shape == vol.shape
+    assert w["change_scale_mm"] == 4.0 and len(w["rms_from_registration_mm"]) == w["rounds"]
     without = segment_reported(vol, atlas, SegmentConfig(**{**cfg.__dict__, "refine_warp": 0}))[1]
     assert "warp_refinement" not in without.registration

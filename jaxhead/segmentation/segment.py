@@ -174,6 +174,17 @@ MAX_REFINE_WARP = 5
 #: 8x fewer points than the 2 mm sample (SPM samples its objective every 3 mm) at 27 per 12 mm
 #: control cell; on the full 2 mm sample a round cost ~55 s per 2 mm head (MNI152 MRI, 60 L-BFGS steps).
 WARP_SAMPLE_MM = 4.0
+#: Scale s (mm) of the warp refinement's penalty on the displacement change from the registration
+#: (warp_refine.py: each component of the change an independent N(0, s^2) per sample voxel;
+#: `warp_change_mm`). 4 mm: about one skull thickness (adult calvarium 4-7 mm) and two of the EM's
+#: 2 mm sample voxels, i.e. the size of a boundary misplacement the refinement is for (a CSF layer
+#: is 2-4 mm thick: a registration that has the inner skull on the CSF is that far off), well below
+#: the 14-26 mm rms drift the unpenalised refinement showed (results/segmentation_warp.md). inf: off.
+#: Measured (results/segmentation_warp_penalty.md, held-out 2 mm, refine_warp 2): at 4 mm the warp is
+#: all but frozen (0.1 mm rms change, tables the default's to +-0.003 but MNI152 MRI 8 % CSF -0.028); the
+#: per-voxel prior is ~3.5x stiffer than a per-control-point one of the same s. 32 mm lets MNI152 MRI
+#: 3 % meet every bar but costs CT MNI152 20 HU its CSF bar (0.686 -> 0.598), so refine_warp stays off.
+DEFAULT_WARP_CHANGE_MM = {"mri": 4.0, "ct": 4.0}
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -255,6 +266,9 @@ class SegmentConfig:
             raises the objective by less than `tol`; SPM's unified segmentation, see
             `jaxhead.segmentation.warp_refine`); 0 = off; None: the modality default
             (DEFAULT_REFINE_WARP). Needs the registration's B-spline stage.
+        warp_change_mm: scale s (mm, > 0) of the refinement's Gaussian penalty on the displacement's
+            change from the registration's (`jaxhead.segmentation.warp_refine`); inf: no penalty (the
+            bending energy alone); None: the modality default (DEFAULT_WARP_CHANGE_MM).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
             outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
             MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
@@ -284,6 +298,7 @@ class SegmentConfig:
     variance_prior: float | None = None
     diploe_above_csf: bool | None = None
     refine_warp: int | None = None
+    warp_change_mm: float | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -352,6 +367,13 @@ class SegmentConfig:
                 f"[segment] `refine_warp` must be an integer 0..{MAX_REFINE_WARP} (rounds of warp refinement; 0 = off) "
                 f"or None (modality default), got {self.refine_warp!r}."
             )
+        if self.warp_change_mm is not None and (
+                isinstance(self.warp_change_mm, bool) or not isinstance(self.warp_change_mm, (int, float, np.number))
+                or not self.warp_change_mm > 0):
+            raise ValueError(
+                f"[segment] `warp_change_mm` must be a number > 0 (mm: the scale of the warp refinement's penalty on "
+                f"the displacement change; inf = no penalty) or None (modality default), got {self.warp_change_mm!r}."
+            )
         if self.refine_rounds() > 0 and not self.register.bspline:
             raise ValueError(
                 f"[segment] `refine_warp={self.refine_rounds()}` refines the registration's B-spline warp, but "
@@ -361,6 +383,10 @@ class SegmentConfig:
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
             raise ValueError("[segment] `atlas_voxel_mm` must be > 0 and `atlas_subjects` >= 1.")
+
+    def warp_change_scale(self) -> float:
+        """Scale (mm) of the warp refinement's displacement-change penalty (`warp_change_mm`, or the default)."""
+        return DEFAULT_WARP_CHANGE_MM[self.modality] if self.warp_change_mm is None else float(self.warp_change_mm)
 
     def refine_rounds(self) -> int:
         """Rounds of warp refinement (`refine_warp`, or the modality default)."""
@@ -858,12 +884,14 @@ def _refine_warp(volume: Volume, atlas: Atlas, transform: BSplineTransform, fit,
     applies them after resampling: the two differ only within the trilinear interpolation).
     Returns (transform, fit, summary for the run report)."""
     t0 = time.perf_counter()
+    anchor = transform.coefficients  # every round's change penalty is measured from the registration
+    scale = cfg.warp_change_scale()
 
     def make_problem(tr, fit):
         _, res, opts, _, pi, (y_s, coords_s, sample_affine) = fit
         priors = atlas.priors if pi is None else with_proportions(atlas.priors, atlas.unmodelled, pi)
         return warp_problem(y_s, coords_s, res.params, res.posteriors, opts, priors, atlas.affine, tr,
-                            sample_affine, cfg.register.bending_energy, stride)
+                            sample_affine, cfg.register.bending_energy, stride, anchor, scale)
 
     def refit(tr):
         priors = resample(atlas.priors, atlas.affine, tr, volume.shape, volume.affine, dtype=_dtype(cfg))
@@ -874,6 +902,7 @@ def _refine_warp(volume: Volume, atlas: Atlas, transform: BSplineTransform, fit,
     step = stride * sample_vox  # the solver's first step: about a voxel of the objective's grid
     transform, fit, summary = alternate(transform, fit, make_problem, refit, cfg.refine_rounds(), cfg.register,
                                         step, cfg.tol)
+    summary["change_scale_mm"] = scale
     summary["seconds"] = round(time.perf_counter() - t0, 1)
     log.info("segment (%s): warp refined on the EM likelihood: %s", cfg.modality, summary)
     return transform, fit, summary

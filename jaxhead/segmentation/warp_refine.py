@@ -8,7 +8,7 @@ likelihood, and the warp can be refined on it (Ashburner & Friston 2005, NeuroIm
 "Optimising the deformations"; SPM's unified segmentation alternates this with the EM):
 
     maximise over the B-spline coefficients c
-        F(c) = (1/N) sum_i log sum_k pi_ik(c) L_ik  -  lambda E_bend(c),
+        F(c) = (1/N) sum_i log sum_k pi_ik(c) L_ik  -  lambda E_bend(c)  -  (1/2N) sum_i |u_c(x_i) - u_0(x_i)|^2 / s^2,
 
 with L_ik = sum_{j in k} w_j N(y_i - b_i; mu_j, v_j) the class likelihoods of the fitted mixture
 (bias field included) held fixed, and pi_ik(c) the prior the EM's last E-step used, now as a function
@@ -19,7 +19,14 @@ k. At the registration's coefficients F is the EM's own mean log-likelihood per 
 constant of its standardised units). lambda and E_bend are the registration's bending-energy weight
 and penalty (`register.bending_energy`), so the refined warp is no rougher than the registration
 allows; the similarity it is weighed against is a mean log-likelihood per voxel (nats) instead of
-NMI (both are O(1)). The sum runs over the EM's sample grid. Gradients are JAX's, through the
+NMI (both are O(1)). The sum runs over the EM's sample grid.
+
+The last term is a Gaussian prior on the change of the displacement u from the registration's, u_0
+(each component an independent N(0, s^2) per sample voxel, on the same per-voxel footing as the
+log-likelihood): the bending energy is zero for any affine displacement, so on its own it lets the
+warp drift where the priors are flat (inside the brain, in the air) and the objective is blind to it
+(results/segmentation_warp.md: 14-26 mm rms, 76 mm at most, every solve at its step limit). s is a
+displacement scale in mm (`SegmentConfig.warp_change_mm`); s = inf drops the term. Gradients are JAX's, through the
 trilinear resampling of the priors; the optimiser is the registration's (`register.minimise_coefficients`,
 L-BFGS with a backtracking Armijo search, so F does not decrease; a solve that ends lower is
 rejected and reported).
@@ -66,6 +73,8 @@ class WarpProblem(eqx.Module):
         relax, prior_floor: the EM's settings.
         head: (x, y, z) 1 where the EM's background posterior is < 1/2 (for the report), else 0.
         bending: lambda, the registration's bending-energy weight.
+        anchor: (3, na, nb, nc) the registration's coefficients c_0 (the change penalty's origin).
+        change_scale: s, mm, of the penalty on the displacement change (inf: no penalty).
         spacing: (3,) control-point spacing in mm.
         shape: (x, y, z) of the sample grid.
     """
@@ -80,16 +89,19 @@ class WarpProblem(eqx.Module):
     relaxed: jax.Array
     potts: jax.Array
     head: jax.Array
+    anchor: jax.Array
     relax: float = eqx.field(static=True)
     prior_floor: float = eqx.field(static=True)
     bending: float = eqx.field(static=True)
+    change_scale: float = eqx.field(static=True)
     spacing: tuple = eqx.field(static=True)
     shape: tuple = eqx.field(static=True)
 
 
 def warp_problem(
     y, coords, params: MixtureParams, posteriors, opts: EMOptions, atlas_priors, atlas_affine,
-    transform: BSplineTransform, sample_affine, bending: float, stride: int = 1,
+    transform: BSplineTransform, sample_affine, bending: float, stride: int = 1, anchor=None,
+    change_scale_mm: float = float("inf"),
 ) -> WarpProblem:
     """The fixed parts of the warp objective from a converged EM.
 
@@ -107,6 +119,9 @@ def warp_problem(
         stride: the objective sums over every `stride`-th voxel of the sample grid per axis (the
             fixed parts are computed on the whole grid first, the Potts factor from each voxel's own
             neighbours).
+        anchor: (3, na, nb, nc) coefficients the displacement change is measured from (None: the
+            transform's own; `segment` passes the registration's to every round).
+        change_scale_mm: s of the change penalty (module docstring), mm, > 0; inf: no penalty.
     Returns:
         WarpProblem.
     """
@@ -115,6 +130,13 @@ def warp_problem(
             f"`transform` must be a BSplineTransform to refine its warp, got {type(transform).__name__}; "
             "register with RegisterConfig(bspline=True)."
         )
+    if isinstance(change_scale_mm, bool) or not isinstance(change_scale_mm, (int, float, np.floating, np.integer)) \
+            or not change_scale_mm > 0:
+        raise ValueError(f"`change_scale_mm` must be a number > 0 (mm; inf: no penalty), got {change_scale_mm!r}.")
+    anchor = transform.coefficients if anchor is None else anchor
+    if tuple(np.shape(anchor)) != tuple(transform.coefficients.shape):
+        raise ValueError(f"`anchor` has shape {np.shape(anchor)}; expected the transform's coefficients' "
+                         f"{tuple(transform.coefficients.shape)}.")
     y = jnp.asarray(y)
     dtype = y.dtype
     q = jnp.asarray(posteriors, dtype)
@@ -143,8 +165,8 @@ def warp_problem(
         affine=jnp.asarray(transform.affine, dtype),
         bases=tuple(_axis_bases(grid_affine, grid_shape, m.shape, sample_affine, dtype)),
         sample_affine=jnp.asarray(sample_affine, dtype), likelihoods=lik, log_scale=m, relaxed=relaxed,
-        potts=potts, head=head, relax=float(opts.relax), prior_floor=float(opts.prior_floor),
-        bending=float(bending), spacing=tuple(float(s) for s in voxel_sizes(grid_affine)), shape=tuple(m.shape),
+        potts=potts, head=head, anchor=jnp.asarray(anchor, dtype), relax=float(opts.relax),
+        prior_floor=float(opts.prior_floor), bending=float(bending), change_scale=float(change_scale_mm), spacing=tuple(float(s) for s in voxel_sizes(grid_affine)), shape=tuple(m.shape),
     )
 
 
@@ -156,9 +178,18 @@ def warp_priors(coefficients, problem: WarpProblem):
     return _normalise_prior(jax.vmap(lambda p: _sample(p, idx))(problem.priors), problem.prior_floor)
 
 
+def change_penalty(coefficients, problem: WarpProblem):
+    """(1/2) mean over the objective's grid of |u_c - u_anchor|^2 / s^2 (0 when s is inf)."""
+    if not np.isfinite(problem.change_scale):
+        return jnp.zeros((), problem.likelihoods.dtype)
+    du = _displacement(coefficients - problem.anchor, problem.bases)  # u is linear in c
+    return 0.5 * _vsum(jnp.sum(du * du, 0)) / (np.prod(problem.shape) * problem.change_scale**2)
+
+
 def warp_objective(coefficients, problem: WarpProblem):
     """F(c): the mean mixture log-likelihood per sample voxel under the warped priors minus lambda times
-    the bending energy (module docstring). Arguments: (3, na, nb, nc) coefficients in mm, WarpProblem."""
+    the bending energy minus the displacement-change penalty (module docstring). Arguments:
+    (3, na, nb, nc) coefficients in mm, WarpProblem."""
     atlas = warp_priors(coefficients, problem)
     if problem.relax > 0:
         prior = [(1.0 - problem.relax) * a + r for a, r in zip(atlas, problem.relaxed)]
@@ -168,7 +199,8 @@ def warp_objective(coefficients, problem: WarpProblem):
     s = sum(p * lk for p, lk in zip(prior, problem.likelihoods))
     ll = problem.log_scale + jnp.log(jnp.maximum(s, jnp.finfo(s.dtype).tiny))
     n = np.prod(problem.shape)
-    return _vsum(ll) / n - problem.bending * bending_energy(coefficients, problem.spacing)
+    return (_vsum(ll) / n - problem.bending * bending_energy(coefficients, problem.spacing)
+            - change_penalty(coefficients, problem))
 
 
 _objective_jit = eqx.filter_jit(warp_objective)
@@ -191,7 +223,8 @@ def refine_warp(transform: BSplineTransform, problem: WarpProblem, cfg: Register
         (transform with the refined coefficients, or the given one if the solve did not raise F;
         dict: objective_before, objective_after, gain, steps, accepted, max_change_mm and rms_change_mm
         (largest change of the displacement over the objective's grid, padding included; rms over the
-        head)).
+        head), max_from_anchor_mm and rms_from_anchor_mm (the same for the change from the problem's
+        anchor, the registration in `segment`), penalty (the change penalty at the result, nats per voxel)).
     """
     c0 = jnp.asarray(transform.coefficients, problem.likelihoods.dtype)
     f0 = float(_objective_jit(c0, problem))
@@ -200,10 +233,15 @@ def refine_warp(transform: BSplineTransform, problem: WarpProblem, cfg: Register
     f1 = -float(cost)
     accepted = bool(f1 > f0)  # Armijo steps only go up; anything else keeps the registration's warp
     du2 = jnp.sum(_displacement(c - c0, problem.bases) ** 2, 0) if accepted else jnp.zeros(problem.shape)
-    rms = jnp.sqrt(jnp.sum(du2 * problem.head) / jnp.maximum(jnp.sum(problem.head), 1.0))
+    nhead = jnp.maximum(jnp.sum(problem.head), 1.0)
+    rms = jnp.sqrt(jnp.sum(du2 * problem.head) / nhead)
+    c_end = c if accepted else c0
+    da2 = jnp.sum(_displacement(c_end - problem.anchor, problem.bases) ** 2, 0)
     info = dict(objective_before=f0, objective_after=f1 if accepted else f0, gain=f1 - f0 if accepted else 0.0,
                 steps=int(steps), accepted=accepted, max_change_mm=float(jnp.sqrt(jnp.max(du2))),
-                rms_change_mm=float(rms))
+                rms_change_mm=float(rms), max_from_anchor_mm=float(jnp.sqrt(jnp.max(da2))),
+                rms_from_anchor_mm=float(jnp.sqrt(jnp.sum(da2 * problem.head) / nhead)),
+                penalty=float(change_penalty(c_end, problem)))
     if not accepted:
         return transform, info
     return eqx.tree_at(lambda t: t.coefficients, transform, c.astype(transform.coefficients.dtype)), info
@@ -226,7 +264,8 @@ def alternate(
     Returns:
         (transform, fit, summary dict: rounds (refinements run), refits (of them adopted: each raised F
         by >= tol and was followed by an EM), objective per round [before, after], gain (F raised, summed
-        over the adopted rounds), max_change_mm and steps per round).
+        over the adopted rounds), max_change_mm, rms_change_mm, max_from_registration_mm,
+        rms_from_registration_mm (the change from make_problem's anchor), penalty and steps per round).
     """
     per_round = []
     for _ in range(rounds):
@@ -243,6 +282,9 @@ def alternate(
         gain=float(sum(r["gain"] for r in adopted)),
         max_change_mm=[round(r["max_change_mm"], 3) for r in per_round],
         rms_change_mm=[round(r["rms_change_mm"], 3) for r in per_round],
+        max_from_registration_mm=[round(r["max_from_anchor_mm"], 3) for r in per_round],
+        rms_from_registration_mm=[round(r["rms_from_anchor_mm"], 3) for r in per_round],
+        penalty=[round(r["penalty"], 6) for r in per_round],
         steps=[r["steps"] for r in per_round],
     )
     return transform, fit, summary
