@@ -62,8 +62,8 @@ from scipy import ndimage
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, voxel_sizes
 from .atlas import N_CLASSES, Atlas, check_atlas_kind, default_atlas, regional_proportions, with_proportions
-from .denoise import diffuse, noise_sd, rayleigh_noise_sd
-from .em import EMOptions, MixtureParams, bias_field, fit_mixture, infer_posteriors
+from .denoise import diffuse, log_noise_table, noise_sd, rayleigh_noise_sd
+from .em import EMOptions, MixtureParams, NoiseFloor, bias_field, fit_mixture, infer_posteriors
 from .register import (
     AffineTransform, BSplineTransform, RegisterConfig, Transform, _level_factors, centre_of_mass, downsample, nmi,
     register, resample,
@@ -255,6 +255,11 @@ class SegmentConfig:
             raises the objective by less than `tol`; SPM's unified segmentation, see
             `jaxhead.segmentation.warp_refine`); 0 = off; None: the modality default
             (DEFAULT_REFINE_WARP). Needs the registration's B-spline stage.
+        noise_floor: MRI: keep every Gaussian at least as wide as the noise a tissue of its intensity
+            keeps in the EM's data (the scan's Rician noise, `denoise.rayleigh_noise_sd`, through
+            `denoise.log_noise_table`: after `denoise` the residual of the smoothing; em.NoiseFloor), so
+            no Gaussian collapses onto a smoothed, texture-free tissue. None: on where `denoise` is on
+            (MRI); True with a CT is an error (CT noise is not Rician; not measured).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
             outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
             MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
@@ -284,6 +289,7 @@ class SegmentConfig:
     variance_prior: float | None = None
     diploe_above_csf: bool | None = None
     refine_warp: int | None = None
+    noise_floor: bool | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -356,6 +362,12 @@ class SegmentConfig:
             raise ValueError(
                 f"[segment] `refine_warp={self.refine_rounds()}` refines the registration's B-spline warp, but "
                 "`register.bspline` is off; turn the B-spline stage on or set refine_warp=0."
+            )
+        _check_optional_bool("noise_floor", self.noise_floor)
+        if self.noise_floor and self.modality != "mri":
+            raise ValueError(
+                "[segment] `noise_floor=True` needs modality='mri' (its floor is the log of Rician noise); a CT's "
+                "noise floor is not modelled. Leave it None for a CT."
             )
         if not isinstance(self.check_registration, (bool, np.bool_)):
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
@@ -474,9 +486,31 @@ def _em_data(volume: Volume, modality: str, denoise: bool = False):
     intensities (MRI: the magnitude, before the log) are first smoothed by `denoise.diffuse` with an
     edge threshold of EDGE_FACTOR times their estimated noise sd (CT: `denoise.noise_sd`; MRI: the
     Rician channel sd from the air, `denoise.rayleigh_noise_sd`, else `noise_sd` with a warning)."""
+    return _em_data_noise(volume, modality, denoise)[0]
+
+
+def _noise_floor(sd: float | None, denoise: bool) -> NoiseFloor | None:
+    """The EM's NoiseFloor of an MRI (log intensity) with Rician channel noise sd `sd` (intensity
+    units), smoothed (`denoise`) or not: `denoise.log_noise_table` shifted by log sd. None without a
+    measured noise (no air: a warning)."""
+    if sd is None or not sd > 0:
+        log.warning("segment (mri): no Rician noise measured from the air (denoise.rayleigh_noise_sd); the EM "
+                    "runs without its noise floor")
+        return None
+    m, d = log_noise_table(EDGE_FACTOR, DENOISE_STEPS if denoise else 0)
+    return NoiseFloor(means=jnp.asarray(np.log(sd) + m), sds=jnp.asarray(d))
+
+
+def _em_data_noise(volume: Volume, modality: str, denoise: bool = False, rician: bool = False):
+    """`_em_data` and the noise sd it measured (intensity units; None if none): with `rician` (MRI),
+    the Rayleigh estimate from the air even without `denoise` (None where there is no air)."""
     d = volume.data
+    sd = None
+    if modality == "mri" and (rician or denoise):
+        sd = rayleigh_noise_sd(d)
+    rician_sd = sd
     if denoise:
-        sd = rayleigh_noise_sd(d) if modality == "mri" else noise_sd(d)
+        sd = sd if modality == "mri" else noise_sd(d)
         if sd is None:
             log.warning("segment (mri): too little air around the head to measure the Rician noise from it "
                         "(denoise.rayleigh_noise_sd); the edge threshold uses the neighbour-difference estimate "
@@ -487,11 +521,11 @@ def _em_data(volume: Volume, modality: str, denoise: bool = False):
         if sd > 0:
             d = np.asarray(diffuse(jnp.asarray(d, jnp.float32), EDGE_FACTOR * sd, DENOISE_STEPS), dtype=np.float64)
     if modality == "ct":
-        return d
+        return d, sd
     p99 = np.percentile(d, 99)
     if p99 <= 0:
         raise ValueError("`volume` (MRI) has no positive intensities; pass a magnitude image.")
-    return np.log(np.maximum(d, 1e-3 * p99))
+    return np.log(np.maximum(d, 1e-3 * p99)), rician_sd
 
 
 def _dtype(cfg: SegmentConfig):
@@ -768,14 +802,19 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     padded = tuple(-(-n // (8 * s)) * 8 * s for n, s in zip(shape, stride))
     pad = [(0, p - n) for p, n in zip(padded, shape)]
     denoise = DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
-    y_full = jnp.asarray(np.pad(_em_data(volume, cfg.modality, denoise), pad, mode="edge"), dtype)
+    floor_on = cfg.modality == "mri" and (denoise if cfg.noise_floor is None else cfg.noise_floor)
+    y, sd = _em_data_noise(volume, cfg.modality, denoise, rician=floor_on)
+    y_full = jnp.asarray(np.pad(y, pad, mode="edge"), dtype)
+    nfloor = _noise_floor(sd, denoise) if floor_on else None
+    if nfloor is not None:
+        nfloor = NoiseFloor(means=nfloor.means.astype(dtype), sds=nfloor.sds.astype(dtype))
     priors = jnp.pad(jnp.asarray(priors, dtype), [(0, 0)] + pad, mode="edge")
     sl = tuple(slice(None, None, s) for s in stride)
     opts = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox * np.asarray(stride))))
     coords_full = _coords(shape, padded, 1, dtype)
     coords_s = tuple(c[::s] for c, s in zip(coords_full, stride))
     priors_s = priors[(slice(None),) + sl]
-    res = fit_mixture(y_full[sl], priors_s, opts, None, coords_s)
+    res = fit_mixture(y_full[sl], priors_s, opts, None, coords_s, nfloor)
     log.info(
         "segment (%s): EM %d iterations (converged %s), means %s", cfg.modality, int(res.n_iter),
         bool(res.converged), np.round(np.asarray(res.params.means), 3).tolist(),
