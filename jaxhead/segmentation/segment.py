@@ -174,6 +174,22 @@ MAX_REFINE_WARP = 5
 #: 8x fewer points than the 2 mm sample (SPM samples its objective every 3 mm) at 27 per 12 mm
 #: control cell; on the full 2 mm sample a round cost ~55 s per 2 mm head (MNI152 MRI, 60 L-BFGS steps).
 WARP_SAMPLE_MM = 4.0
+#: MRI with `denoise`: the EM's Gaussians are kept at least as wide as the *acquisition* noise at their
+#: intensity (`noise_floor`; em.NoiseFloor from the log-Rician noise of the scan's measured channel sd),
+#: not the residual the smoothing leaves (denoise.log_noise_table(EDGE_FACTOR, DENOISE_STEPS): 0.17 of
+#: it in a homogeneous tissue at high SNR, 0.98-1.3 times that table in the pure tissue of the held-out
+#: renders, experiments/results/segmentation_mri_varfloor.md). Why the acquisition noise: Perona-Malik
+#: conserves the sum of the intensities and the log-likelihood ratio of two equal-variance Gaussians
+#: is linear in the data, so with the acquisition variance the evidence a homogeneous region gives for
+#: one class over another, summed over its voxels, is what the unsmoothed scan gives; with the residual
+#: variance it is 1 / 0.17^2 ~ 35 times that (each raw voxel's noise is shared by ~35 smoothed ones and
+#: the EM counts every voxel as independent), so a narrow Gaussian of another class sitting on a flat,
+#: smoothed tissue (pure CSF: sd 0.016 in log after smoothing against 0.078 before, MNI152 3 %) outbids
+#: the atlas prior and the MRF, which were set against unsmoothed likelihoods (the capture of
+#: experiments/results/segmentation_mri_noise.md, section 2). Smoothing still moves each voxel's
+#: intensity towards its tissue's (the per-voxel decision), it no longer inflates the evidence.
+#: (A floor at the residual noise binds nowhere there: the captured Gaussian, sd 0.017 at 1 mm, is as
+#: wide as smoothed pure CSF, so no residual-noise floor can rule it out.)
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -255,11 +271,12 @@ class SegmentConfig:
             raises the objective by less than `tol`; SPM's unified segmentation, see
             `jaxhead.segmentation.warp_refine`); 0 = off; None: the modality default
             (DEFAULT_REFINE_WARP). Needs the registration's B-spline stage.
-        noise_floor: MRI: keep every Gaussian at least as wide as the noise a tissue of its intensity
-            keeps in the EM's data (the scan's Rician noise, `denoise.rayleigh_noise_sd`, through
-            `denoise.log_noise_table`: after `denoise` the residual of the smoothing; em.NoiseFloor), so
-            no Gaussian collapses onto a smoothed, texture-free tissue. None: on where `denoise` is on
-            (MRI); True with a CT is an error (CT noise is not Rician; not measured).
+        noise_floor: MRI: keep every Gaussian at least as wide as the acquisition noise of a tissue of
+            its intensity (the log of the scan's Rician noise, measured from the air by
+            `denoise.rayleigh_noise_sd`; `_noise_floor`, em.NoiseFloor), also after `denoise` (why: the
+            comment of NOISE_FLOOR), so no Gaussian collapses onto a smoothed, texture-free tissue.
+            None: on where `denoise` is on (MRI); True with a CT is an error (CT noise is not Rician;
+            not measured).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
             outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
             MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
@@ -489,15 +506,16 @@ def _em_data(volume: Volume, modality: str, denoise: bool = False):
     return _em_data_noise(volume, modality, denoise)[0]
 
 
-def _noise_floor(sd: float | None, denoise: bool) -> NoiseFloor | None:
+def _noise_floor(sd: float | None) -> NoiseFloor | None:
     """The EM's NoiseFloor of an MRI (log intensity) with Rician channel noise sd `sd` (intensity
-    units), smoothed (`denoise`) or not: `denoise.log_noise_table` shifted by log sd. None without a
-    measured noise (no air: a warning)."""
+    units): the acquisition's log-Rician noise, `denoise.log_noise_table(., 0)` shifted by log sd,
+    whether the scan was smoothed or not (see NOISE_FLOOR). None without a measured noise (no air: a
+    warning)."""
     if sd is None or not sd > 0:
         log.warning("segment (mri): no Rician noise measured from the air (denoise.rayleigh_noise_sd); the EM "
                     "runs without its noise floor")
         return None
-    m, d = log_noise_table(EDGE_FACTOR, DENOISE_STEPS if denoise else 0)
+    m, d = log_noise_table(EDGE_FACTOR, 0)
     return NoiseFloor(means=jnp.asarray(np.log(sd) + m), sds=jnp.asarray(d))
 
 
@@ -805,7 +823,7 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     floor_on = cfg.modality == "mri" and (denoise if cfg.noise_floor is None else cfg.noise_floor)
     y, sd = _em_data_noise(volume, cfg.modality, denoise, rician=floor_on)
     y_full = jnp.asarray(np.pad(y, pad, mode="edge"), dtype)
-    nfloor = _noise_floor(sd, denoise) if floor_on else None
+    nfloor = _noise_floor(sd) if floor_on else None
     if nfloor is not None:
         nfloor = NoiseFloor(means=nfloor.means.astype(dtype), sds=nfloor.sds.astype(dtype))
     priors = jnp.pad(jnp.asarray(priors, dtype), [(0, 0)] + pad, mode="edge")
