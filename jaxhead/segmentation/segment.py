@@ -110,7 +110,10 @@ DEFAULT_BIAS_DEGREE = {"mri": 4, "ct": 0}
 #: CSF 0.677 -> 0.804) and at 2 mm on the MNI152 head at 3 % (CSF 0.669 -> 0.752, meets), but at 1 mm
 #: and 3 % it costs CSF (MNI152 0.808 -> 0.677, a met bar lost; ANTs 0.867 -> 0.788). Probably the
 #: mechanism measured at 2 mm (not checked per voxel at 1 mm): after smoothing, a flat tissue at high
-#: SNR is an intensity spike that a narrow Gaussian of another class can capture.
+#: SNR is an intensity spike that a narrow Gaussian of another class can capture. A floor on the
+#: Gaussians' width (`noise_floor`, DEFAULT_NOISE_FLOOR) was measured with denoise on (experiments/
+#: results/segmentation_mri_varfloor.md): at the smoothing's residual noise it binds nowhere; at the
+#: acquisition noise it removes the 1 mm 3 % loss but also every gain above, so no more rows meet.
 DEFAULT_DENOISE = {"mri": False, "ct": True}
 #: Dirichlet prior on the within-class weights by default (em.map_weights: pseudo-counts of eta times
 #: the class's voxels, shared among its free Gaussians, so that no tissue Gaussian of a class is
@@ -174,8 +177,8 @@ MAX_REFINE_WARP = 5
 #: 8x fewer points than the 2 mm sample (SPM samples its objective every 3 mm) at 27 per 12 mm
 #: control cell; on the full 2 mm sample a round cost ~55 s per 2 mm head (MNI152 MRI, 60 L-BFGS steps).
 WARP_SAMPLE_MM = 4.0
-#: MRI with `denoise`: the EM's Gaussians are kept at least as wide as the *acquisition* noise at their
-#: intensity (`noise_floor`; em.NoiseFloor from the log-Rician noise of the scan's measured channel sd),
+#: MRI `noise_floor` (em.NoiseFloor): the EM's Gaussians kept at least as wide as the *acquisition* noise
+#: at their intensity (the log-Rician noise of the scan's measured channel sd),
 #: not the residual the smoothing leaves (denoise.log_noise_table(EDGE_FACTOR, DENOISE_STEPS): 0.17 of
 #: it in a homogeneous tissue at high SNR, 0.98-1.3 times that table in the pure tissue of the held-out
 #: renders, experiments/results/segmentation_mri_varfloor.md). Why the acquisition noise: Perona-Malik
@@ -190,6 +193,12 @@ WARP_SAMPLE_MM = 4.0
 #: intensity towards its tissue's (the per-voxel decision), it no longer inflates the evidence.
 #: (A floor at the residual noise binds nowhere there: the captured Gaussian, sd 0.017 at 1 mm, is as
 #: wide as smoothed pure CSF, so no residual-noise floor can rule it out.)
+#: Off by default, also with `denoise`: measured on the held-out MRI with denoise + floor (minimum Dice
+#: brain/CSF/skull/scalp), it removes the 1 mm 3 % loss (MNI152 CSF 0.677 -> 0.833, ANTs brain 0.938 ->
+#: 0.964) but with it the gains: 1 mm 8 % back to about off (ANTs skull 0.792, MNI152 CSF 0.705: both
+#: rows met every bar with denoise alone), 2 mm MNI152 3 % 0.678/0.846 (0.752/0.859, met, with denoise
+#: alone). So denoise's 8 % gains came from the same sharper likelihood that costs the 3 % CSF.
+DEFAULT_NOISE_FLOOR = {"mri": False, "ct": False}
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -274,9 +283,10 @@ class SegmentConfig:
         noise_floor: MRI: keep every Gaussian at least as wide as the acquisition noise of a tissue of
             its intensity (the log of the scan's Rician noise, measured from the air by
             `denoise.rayleigh_noise_sd`; `_noise_floor`, em.NoiseFloor), also after `denoise` (why: the
-            comment of NOISE_FLOOR), so no Gaussian collapses onto a smoothed, texture-free tissue.
-            None: on where `denoise` is on (MRI); True with a CT is an error (CT noise is not Rician;
-            not measured).
+            comment of DEFAULT_NOISE_FLOOR), so no Gaussian of one class can claim a smoothed,
+            texture-free tissue of another with a likelihood sharper than the scan's noise allows.
+            None: the modality default (DEFAULT_NOISE_FLOOR: off); True with a CT is an error (CT
+            noise is not Rician; not measured).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
             outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
             MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
@@ -509,8 +519,8 @@ def _em_data(volume: Volume, modality: str, denoise: bool = False):
 def _noise_floor(sd: float | None) -> NoiseFloor | None:
     """The EM's NoiseFloor of an MRI (log intensity) with Rician channel noise sd `sd` (intensity
     units): the acquisition's log-Rician noise, `denoise.log_noise_table(., 0)` shifted by log sd,
-    whether the scan was smoothed or not (see NOISE_FLOOR). None without a measured noise (no air: a
-    warning)."""
+    whether the scan was smoothed or not (see DEFAULT_NOISE_FLOOR). None without a measured noise
+    (no air: a warning)."""
     if sd is None or not sd > 0:
         log.warning("segment (mri): no Rician noise measured from the air (denoise.rayleigh_noise_sd); the EM "
                     "runs without its noise floor")
@@ -820,7 +830,7 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     padded = tuple(-(-n // (8 * s)) * 8 * s for n, s in zip(shape, stride))
     pad = [(0, p - n) for p, n in zip(padded, shape)]
     denoise = DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
-    floor_on = cfg.modality == "mri" and (denoise if cfg.noise_floor is None else cfg.noise_floor)
+    floor_on = DEFAULT_NOISE_FLOOR[cfg.modality] if cfg.noise_floor is None else cfg.noise_floor
     y, sd = _em_data_noise(volume, cfg.modality, denoise, rician=floor_on)
     y_full = jnp.asarray(np.pad(y, pad, mode="edge"), dtype)
     nfloor = _noise_floor(sd) if floor_on else None
