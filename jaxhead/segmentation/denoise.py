@@ -147,3 +147,58 @@ def diffuse(y, k, n_steps: int = 5):
         return u + DT * div
 
     return lax.fori_loop(0, n_steps, step, y)
+
+
+#: sd of the log of a Rayleigh variable (the magnitude of air): sqrt(pi^2 / 24) (the log of an
+#: exponential variable has variance pi^2 / 6; |z|^2 of complex Gaussian noise is exponential).
+LOG_RAYLEIGH_SD = float(np.pi / np.sqrt(24.0))
+#: `log_noise_table`: true signal / channel noise sd at which the noise is simulated (0 = air). Above
+#: the last the log noise is sd / A (delta method; Rician -> Gaussian), which the table extends.
+TABLE_SNR = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 11.0, 16.0, 23.0, 32.0, 45.0, 64.0)
+#: `log_noise_table`: side of the simulated cube of homogeneous tissue (voxels; 2 per side are
+#: dropped: the zero-flux border smooths less). 40^3 gives the sd to ~0.5 %.
+TABLE_SIDE = 40
+
+
+@functools.lru_cache(maxsize=16)
+def log_noise_table(edge_factor: float, n_steps: int, side: int = TABLE_SIDE, seed: int = 0):
+    """The noise a homogeneous tissue keeps in the log of an MRI magnitude image after `diffuse`.
+
+    Measured by simulation, not assumed: for each true signal A = q * s (q in TABLE_SNR, s the channel
+    noise sd, s = 1 without loss of generality: the edge threshold k = edge_factor * s scales with s),
+    a cube of independent Rician voxels |A + s (z1 + i z2)| (Gudbjartsson & Patz 1995, MRM 34:910) is
+    smoothed by `diffuse(., edge_factor * s, n_steps)`, and the mean m(q) and sd d(q) of its log taken
+    over the interior. A Gaussian of the EM (log intensity) whose mean is log s + m(q) models a tissue
+    at that SNR; no tissue's voxels are narrower than d(q) (the noise alone), so d is a floor for its
+    sd. Perona-Malik is nonlinear in the noise (the flux falls off for neighbour steps over k), so the
+    residual is not the linear filter's: with edge_factor 2 and 5 steps it is 0.17 of the noise at
+    high SNR (a linear 5-step diffusion leaves 0.12) and 0.10 of the log-Rayleigh sd in air.
+
+    Arguments:
+        edge_factor: k / s of `diffuse` (> 0).
+        n_steps: `diffuse` steps (>= 0; 0: the raw log-Rician noise, whose sd is LOG_RAYLEIGH_SD at
+            q = 0 and 1 / q at high SNR).
+        side, seed: the simulated cube (side^3 voxels) and its random seed.
+    Returns:
+        (m, d): float64 arrays, m increasing (mean log intensity minus log s) and d (the log sd) at
+        TABLE_SNR.
+    """
+    if not (isinstance(edge_factor, (int, float)) and edge_factor > 0):
+        raise ValueError(f"`edge_factor` must be a number > 0 (k / noise sd), got {edge_factor!r}.")
+    if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)) or n_steps < 0:
+        raise ValueError(f"`n_steps` must be an integer >= 0, got {n_steps!r}.")
+    if side < 8:
+        raise ValueError(f"`side` must be >= 8 voxels, got {side!r}.")
+    rng = np.random.default_rng(seed)
+    m, d = [], []
+    c = (slice(2, -2),) * 3
+    for q in TABLE_SNR:
+        mag = np.hypot(q + rng.standard_normal((side,) * 3), rng.standard_normal((side,) * 3))
+        u = np.asarray(diffuse(jnp.asarray(mag), float(edge_factor), int(n_steps))) if n_steps else mag
+        lu = np.log(np.maximum(u[c], 1e-12))
+        m.append(lu.mean())
+        d.append(lu.std())
+    m, d = np.asarray(m), np.asarray(d)
+    if np.any(np.diff(m) <= 0):
+        raise RuntimeError(f"log_noise_table: the simulated mean log intensities are not increasing: {m}.")
+    return m, d

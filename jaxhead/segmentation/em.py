@@ -199,6 +199,43 @@ class MixtureParams(eqx.Module):
     bias: jax.Array
 
 
+class NoiseFloor(eqx.Module):
+    """A per-Gaussian variance floor: the noise a tissue of that mean intensity keeps in the data.
+
+    A Gaussian of the mixture models a tissue: its voxels scatter at least by the noise the data keep
+    at its intensity, so no Gaussian narrower than that is a tissue (it is a spike: a flat, texture-free
+    tissue after smoothing, which a narrow Gaussian of another class can claim). The floor of Gaussian
+    j with mean mu_j (data units) is sd(mu_j)^2, sd interpolated linearly in `means`, `sds`; below
+    the first point sds[0]; above the last, for log intensities (the noise falls as 1 / intensity
+    there: Rician -> Gaussian) sds[-1] * exp(-(mu - means[-1])), otherwise sds[-1]. Built for an MRI
+    by `segment._noise_floor` from `denoise.log_noise_table` and the scan's measured noise.
+
+    Arguments:
+        means: (T,) increasing means (data units).
+        sds: (T,) the noise sd at those means (data units, > 0).
+    """
+
+    means: jax.Array
+    sds: jax.Array
+
+    def __check_init__(self):
+        m, d = np.asarray(self.means), np.asarray(self.sds)
+        if m.ndim != 1 or m.shape != d.shape or m.size < 2:
+            raise ValueError(f"`means` and `sds` must be 1-D of one length >= 2, got shapes {m.shape}, {d.shape}.")
+        if not (np.all(np.isfinite(m)) and np.all(np.diff(m) > 0)):
+            raise ValueError(f"`means` must be finite and strictly increasing, got {m}.")
+        if not (np.all(np.isfinite(d)) and np.all(d > 0)):
+            raise ValueError(f"`sds` must be finite and > 0, got {d}.")
+
+    def sd(self, mu, log_data: bool):
+        """The floor's sd at means `mu` (data units)."""
+        m, d = self.means, self.sds
+        inner = jnp.interp(mu, m, d)
+        if not log_data:
+            return inner
+        return jnp.where(mu > m[-1], d[-1] * jnp.exp(-(mu - m[-1])), inner)
+
+
 class EMResult(eqx.Module):
     """Result of `fit_mixture`.
 
@@ -390,11 +427,13 @@ def _responsibilities(post, pj, lk, opts):
     return lax.optimization_barrier(r)  # materialise once; the M-step reads each r_j three times
 
 
-def _m_step(y, r, mu_old, opts: EMOptions, var_floor, var_old=None, scale=1.0):
+def _m_step(y, r, mu_old, opts: EMOptions, var_floor, var_old=None, scale=1.0, noise_floor=None, centre=0.0):
     """Means, variances (shifted by the old means for accuracy) and within-class weights.
 
     With `opts.mean_order`: the means are `ordered_means` (weights n_j / var_old_j, margins / scale
-    in standardised units) and each variance is about its own constrained mean.
+    in standardised units) and each variance is about its own constrained mean. With `noise_floor`
+    (a NoiseFloor in data units; the data standardised as (y - centre) / scale), each variance is
+    also kept >= the floor at its mean.
     """
     n, s1, s2 = [], [], []
     for j, rj in enumerate(r):
@@ -412,6 +451,8 @@ def _m_step(y, r, mu_old, opts: EMOptions, var_floor, var_old=None, scale=1.0):
         var = var + (mu_c - mu) ** 2  # sum_i r_ij (y_i - mu_c)^2 / n_j
         mu = mu_c
     var = jnp.maximum(map_variances(n, var, opts), var_floor)
+    if noise_floor is not None:
+        var = jnp.maximum(var, (noise_floor.sd(centre + scale * mu, opts.pv_log) / scale) ** 2)
     return mu, var, map_weights(n, opts)
 
 
@@ -620,7 +661,8 @@ def _normalise_prior(priors, floor):
 
 
 @functools.partial(jax.jit, static_argnames=("opts",))
-def fit_mixture(y, priors, opts: EMOptions, init: MixtureParams | None = None, coords=None) -> EMResult:
+def fit_mixture(y, priors, opts: EMOptions, init: MixtureParams | None = None, coords=None,
+                noise_floor: NoiseFloor | None = None) -> EMResult:
     """Fit the atlas-prior Gaussian mixture with MRF, prior relaxation and bias field by EM.
 
     Arguments:
@@ -631,6 +673,9 @@ def fit_mixture(y, priors, opts: EMOptions, init: MixtureParams | None = None, c
         init: optional starting parameters in data units (default: prior-weighted moments).
         coords: optional per-axis bias-basis coordinates in [-1, 1] (see `grid_coordinates`), for a
             strided sample of a larger grid; default: the grid spans [-1, 1].
+        noise_floor: optional NoiseFloor (data units; for log data, `opts.pv_log`): every Gaussian's
+            variance is kept >= the noise a tissue of its mean keeps in the data (on top of
+            `opts.var_floor`); None: only `opts.var_floor`.
     Returns:
         EMResult (posteriors, parameters in data units, bias field, log-likelihood, iterations).
     """
@@ -666,7 +711,7 @@ def fit_mixture(y, priors, opts: EMOptions, init: MixtureParams | None = None, c
         yc = ys - bias_of(coef)
         post, pj, lk, ll = _e_step(yc, _mrf_prior(prior, post_prev, opts.beta), mu, var, w, opts)
         r = _responsibilities(post, pj, lk, opts)
-        mu, var, w = _m_step(yc, r, mu, opts, floor, var, s)
+        mu, var, w = _m_step(yc, r, mu, opts, floor, var, s, noise_floor, c)
         mu, var = _tie_partial_volume(mu, var, opts, c, s)
         if degree > 0:
             wv = functools.reduce(jnp.add, [r[j] / var[j] for j in range(len(r)) if bias_comp[j]])

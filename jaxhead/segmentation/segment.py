@@ -62,8 +62,8 @@ from scipy import ndimage
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, voxel_sizes
 from .atlas import N_CLASSES, Atlas, check_atlas_kind, default_atlas, regional_proportions, with_proportions
-from .denoise import diffuse, noise_sd, rayleigh_noise_sd
-from .em import EMOptions, MixtureParams, bias_field, fit_mixture, infer_posteriors
+from .denoise import diffuse, log_noise_table, noise_sd, rayleigh_noise_sd
+from .em import EMOptions, MixtureParams, NoiseFloor, bias_field, fit_mixture, infer_posteriors
 from .register import (
     AffineTransform, BSplineTransform, RegisterConfig, Transform, _level_factors, centre_of_mass, downsample, nmi,
     register, resample,
@@ -110,7 +110,10 @@ DEFAULT_BIAS_DEGREE = {"mri": 4, "ct": 0}
 #: CSF 0.677 -> 0.804) and at 2 mm on the MNI152 head at 3 % (CSF 0.669 -> 0.752, meets), but at 1 mm
 #: and 3 % it costs CSF (MNI152 0.808 -> 0.677, a met bar lost; ANTs 0.867 -> 0.788). Probably the
 #: mechanism measured at 2 mm (not checked per voxel at 1 mm): after smoothing, a flat tissue at high
-#: SNR is an intensity spike that a narrow Gaussian of another class can capture.
+#: SNR is an intensity spike that a narrow Gaussian of another class can capture. A floor on the
+#: Gaussians' width (`noise_floor`, DEFAULT_NOISE_FLOOR) was measured with denoise on (experiments/
+#: results/segmentation_mri_varfloor.md): at the smoothing's residual noise it binds nowhere; at the
+#: acquisition noise it removes the 1 mm 3 % loss but also every gain above, so no more rows meet.
 DEFAULT_DENOISE = {"mri": False, "ct": True}
 #: Dirichlet prior on the within-class weights by default (em.map_weights: pseudo-counts of eta times
 #: the class's voxels, shared among its free Gaussians, so that no tissue Gaussian of a class is
@@ -185,6 +188,28 @@ WARP_SAMPLE_MM = 4.0
 #: per-voxel prior is ~3.5x stiffer than a per-control-point one of the same s. 32 mm lets MNI152 MRI
 #: 3 % meet every bar but costs CT MNI152 20 HU its CSF bar (0.686 -> 0.598), so refine_warp stays off.
 DEFAULT_WARP_CHANGE_MM = {"mri": 4.0, "ct": 4.0}
+#: MRI `noise_floor` (em.NoiseFloor): the EM's Gaussians kept at least as wide as the *acquisition* noise
+#: at their intensity (the log-Rician noise of the scan's measured channel sd),
+#: not the residual the smoothing leaves (denoise.log_noise_table(EDGE_FACTOR, DENOISE_STEPS): 0.17 of
+#: it in a homogeneous tissue at high SNR, 0.98-1.3 times that table in the pure tissue of the held-out
+#: renders, experiments/results/segmentation_mri_varfloor.md). Why the acquisition noise: Perona-Malik
+#: conserves the sum of the intensities and the log-likelihood ratio of two equal-variance Gaussians
+#: is linear in the data, so with the acquisition variance the evidence a homogeneous region gives for
+#: one class over another, summed over its voxels, is what the unsmoothed scan gives; with the residual
+#: variance it is 1 / 0.17^2 ~ 35 times that (each raw voxel's noise is shared by ~35 smoothed ones and
+#: the EM counts every voxel as independent), so a narrow Gaussian of another class sitting on a flat,
+#: smoothed tissue (pure CSF: sd 0.016 in log after smoothing against 0.078 before, MNI152 3 %) outbids
+#: the atlas prior and the MRF, which were set against unsmoothed likelihoods (the capture of
+#: experiments/results/segmentation_mri_noise.md, section 2). Smoothing still moves each voxel's
+#: intensity towards its tissue's (the per-voxel decision), it no longer inflates the evidence.
+#: (A floor at the residual noise binds nowhere there: the captured Gaussian, sd 0.017 at 1 mm, is as
+#: wide as smoothed pure CSF, so no residual-noise floor can rule it out.)
+#: Off by default, also with `denoise`: measured on the held-out MRI with denoise + floor (minimum Dice
+#: brain/CSF/skull/scalp), it removes the 1 mm 3 % loss (MNI152 CSF 0.677 -> 0.833, ANTs brain 0.938 ->
+#: 0.964) but with it the gains: 1 mm 8 % back to about off (ANTs skull 0.792, MNI152 CSF 0.705: both
+#: rows met every bar with denoise alone), 2 mm MNI152 3 % 0.678/0.846 (0.752/0.859, met, with denoise
+#: alone). So denoise's 8 % gains came from the same sharper likelihood that costs the 3 % CSF.
+DEFAULT_NOISE_FLOOR = {"mri": False, "ct": False}
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -269,6 +294,13 @@ class SegmentConfig:
         warp_change_mm: scale s (mm, > 0) of the refinement's Gaussian penalty on the displacement's
             change from the registration's (`jaxhead.segmentation.warp_refine`); inf: no penalty (the
             bending energy alone); None: the modality default (DEFAULT_WARP_CHANGE_MM).
+        noise_floor: MRI: keep every Gaussian at least as wide as the acquisition noise of a tissue of
+            its intensity (the log of the scan's Rician noise, measured from the air by
+            `denoise.rayleigh_noise_sd`; `_noise_floor`, em.NoiseFloor), also after `denoise` (why: the
+            comment of DEFAULT_NOISE_FLOOR), so no Gaussian of one class can claim a smoothed,
+            texture-free tissue of another with a likelihood sharper than the scan's noise allows.
+            None: the modality default (DEFAULT_NOISE_FLOOR: off); True with a CT is an error (CT
+            noise is not Rician; not measured).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
             outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
             MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
@@ -299,6 +331,7 @@ class SegmentConfig:
     diploe_above_csf: bool | None = None
     refine_warp: int | None = None
     warp_change_mm: float | None = None
+    noise_floor: bool | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -378,6 +411,12 @@ class SegmentConfig:
             raise ValueError(
                 f"[segment] `refine_warp={self.refine_rounds()}` refines the registration's B-spline warp, but "
                 "`register.bspline` is off; turn the B-spline stage on or set refine_warp=0."
+            )
+        _check_optional_bool("noise_floor", self.noise_floor)
+        if self.noise_floor and self.modality != "mri":
+            raise ValueError(
+                "[segment] `noise_floor=True` needs modality='mri' (its floor is the log of Rician noise); a CT's "
+                "noise floor is not modelled. Leave it None for a CT."
             )
         if not isinstance(self.check_registration, (bool, np.bool_)):
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
@@ -500,9 +539,32 @@ def _em_data(volume: Volume, modality: str, denoise: bool = False):
     intensities (MRI: the magnitude, before the log) are first smoothed by `denoise.diffuse` with an
     edge threshold of EDGE_FACTOR times their estimated noise sd (CT: `denoise.noise_sd`; MRI: the
     Rician channel sd from the air, `denoise.rayleigh_noise_sd`, else `noise_sd` with a warning)."""
+    return _em_data_noise(volume, modality, denoise)[0]
+
+
+def _noise_floor(sd: float | None) -> NoiseFloor | None:
+    """The EM's NoiseFloor of an MRI (log intensity) with Rician channel noise sd `sd` (intensity
+    units): the acquisition's log-Rician noise, `denoise.log_noise_table(., 0)` shifted by log sd,
+    whether the scan was smoothed or not (see DEFAULT_NOISE_FLOOR). None without a measured noise
+    (no air: a warning)."""
+    if sd is None or not sd > 0:
+        log.warning("segment (mri): no Rician noise measured from the air (denoise.rayleigh_noise_sd); the EM "
+                    "runs without its noise floor")
+        return None
+    m, d = log_noise_table(EDGE_FACTOR, 0)
+    return NoiseFloor(means=jnp.asarray(np.log(sd) + m), sds=jnp.asarray(d))
+
+
+def _em_data_noise(volume: Volume, modality: str, denoise: bool = False, rician: bool = False):
+    """`_em_data` and the noise sd it measured (intensity units; None if none): with `rician` (MRI),
+    the Rayleigh estimate from the air even without `denoise` (None where there is no air)."""
     d = volume.data
+    sd = None
+    if modality == "mri" and (rician or denoise):
+        sd = rayleigh_noise_sd(d)
+    rician_sd = sd
     if denoise:
-        sd = rayleigh_noise_sd(d) if modality == "mri" else noise_sd(d)
+        sd = sd if modality == "mri" else noise_sd(d)
         if sd is None:
             log.warning("segment (mri): too little air around the head to measure the Rician noise from it "
                         "(denoise.rayleigh_noise_sd); the edge threshold uses the neighbour-difference estimate "
@@ -513,11 +575,11 @@ def _em_data(volume: Volume, modality: str, denoise: bool = False):
         if sd > 0:
             d = np.asarray(diffuse(jnp.asarray(d, jnp.float32), EDGE_FACTOR * sd, DENOISE_STEPS), dtype=np.float64)
     if modality == "ct":
-        return d
+        return d, sd
     p99 = np.percentile(d, 99)
     if p99 <= 0:
         raise ValueError("`volume` (MRI) has no positive intensities; pass a magnitude image.")
-    return np.log(np.maximum(d, 1e-3 * p99))
+    return np.log(np.maximum(d, 1e-3 * p99)), rician_sd
 
 
 def _dtype(cfg: SegmentConfig):
@@ -794,14 +856,19 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     padded = tuple(-(-n // (8 * s)) * 8 * s for n, s in zip(shape, stride))
     pad = [(0, p - n) for p, n in zip(padded, shape)]
     denoise = DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
-    y_full = jnp.asarray(np.pad(_em_data(volume, cfg.modality, denoise), pad, mode="edge"), dtype)
+    floor_on = DEFAULT_NOISE_FLOOR[cfg.modality] if cfg.noise_floor is None else cfg.noise_floor
+    y, sd = _em_data_noise(volume, cfg.modality, denoise, rician=floor_on)
+    y_full = jnp.asarray(np.pad(y, pad, mode="edge"), dtype)
+    nfloor = _noise_floor(sd) if floor_on else None
+    if nfloor is not None:
+        nfloor = NoiseFloor(means=nfloor.means.astype(dtype), sds=nfloor.sds.astype(dtype))
     priors = jnp.pad(jnp.asarray(priors, dtype), [(0, 0)] + pad, mode="edge")
     sl = tuple(slice(None, None, s) for s in stride)
     opts = cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox * np.asarray(stride))))
     coords_full = _coords(shape, padded, 1, dtype)
     coords_s = tuple(c[::s] for c, s in zip(coords_full, stride))
     priors_s = priors[(slice(None),) + sl]
-    res = fit_mixture(y_full[sl], priors_s, opts, None, coords_s)
+    res = fit_mixture(y_full[sl], priors_s, opts, None, coords_s, nfloor)
     log.info(
         "segment (%s): EM %d iterations (converged %s), means %s", cfg.modality, int(res.n_iter),
         bool(res.converged), np.round(np.asarray(res.params.means), 3).tolist(),
