@@ -240,6 +240,15 @@ def _check_optional_bool(name: str, value) -> None:
         raise ValueError(f"[segment] `{name}` must be true, false or None (modality default), got {value!r}.")
 
 
+def _check_modality_switch(name: str, value, modality: str, needs: str, reason: str) -> None:
+    """`_check_optional_bool`, and a ValueError when a switch that only one modality has is turned on for
+    the other (`reason`: why it needs `needs`, in the message)."""
+    _check_optional_bool(name, value)
+    if value and modality != needs:
+        other = "an MRI" if needs == "ct" else "a CT"
+        raise ValueError(f"[segment] `{name}=True` needs modality='{needs}' {reason} Leave it None for {other}.")
+
+
 @dataclass(frozen=True, kw_only=True)
 class SegmentConfig:
     """Settings of `segment`.
@@ -368,18 +377,12 @@ class SegmentConfig:
                 f"[segment] `weight_prior` must be a number >= 0 (0 = maximum likelihood) or None (modality "
                 f"default), got {self.weight_prior!r}."
             )
-        _check_optional_bool("csf_below_brain", self.csf_below_brain)
-        if self.csf_below_brain and self.modality != "ct":
-            raise ValueError(
-                "[segment] `csf_below_brain=True` needs modality='ct' (Hounsfield units); MRI intensities are "
-                "relative and their CSF/brain order depends on the weighting. Leave it None for an MRI."
-            )
-        _check_optional_bool("diploe_above_csf", self.diploe_above_csf)
-        if self.diploe_above_csf and self.modality != "mri":
-            raise ValueError(
-                "[segment] `diploe_above_csf=True` needs modality='mri' (a T1-weighted log intensity order); in CT "
-                "both skull Gaussians lie hundreds of HU above CSF. Leave it None for a CT."
-            )
+        _check_modality_switch("csf_below_brain", self.csf_below_brain, self.modality, "ct",
+                               "(Hounsfield units); MRI intensities are relative and their CSF/brain order "
+                               "depends on the weighting.")
+        _check_modality_switch("diploe_above_csf", self.diploe_above_csf, self.modality, "mri",
+                               "(a T1-weighted log intensity order); in CT both skull Gaussians lie hundreds of "
+                               "HU above CSF.")
         if self.diploe_above_csf and self.gaussians_per_class()[int(Tissue.SKULL)] < 2:
             raise ValueError(
                 f"[segment] `diploe_above_csf=True` orders the skull class's second Gaussian, but `gaussians` gives "
@@ -412,12 +415,8 @@ class SegmentConfig:
                 f"[segment] `refine_warp={self.refine_rounds()}` refines the registration's B-spline warp, but "
                 "`register.bspline` is off; turn the B-spline stage on or set refine_warp=0."
             )
-        _check_optional_bool("noise_floor", self.noise_floor)
-        if self.noise_floor and self.modality != "mri":
-            raise ValueError(
-                "[segment] `noise_floor=True` needs modality='mri' (its floor is the log of Rician noise); a CT's "
-                "noise floor is not modelled. Leave it None for a CT."
-            )
+        _check_modality_switch("noise_floor", self.noise_floor, self.modality, "mri",
+                               "(its floor is the log of Rician noise); a CT's noise floor is not modelled.")
         if not isinstance(self.check_registration, (bool, np.bool_)):
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
