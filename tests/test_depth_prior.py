@@ -117,3 +117,18 @@ def test_segment_reports_the_depth_prior(tmp_path, monkeypatch):
     assert 0 < rep["relabelled_fraction"] < 0.1
     d = dice_scores(labels, ants.labels())
     assert d["brain"] > 0.9 and d["scalp"] > 0.85 and d["skull"] > 0.65, d
+
+
+def test_a_first_segmentation_without_scalp_is_a_clear_error():
+    from jaxhead.segmentation.atlas import Atlas
+    from jaxhead.segmentation.segment import _depth_prior
+    from jaxhead.volume import Volume
+
+    r = _radius(16)
+    lab = _shells(r, (3, 4, 6, 8))
+    pri = _priors(lab)
+    atlas = Atlas(lab.astype(np.float32), pri, np.eye(4), "mri")
+    post = pri.copy()
+    post[4] = 0  # a first EM that found no scalp
+    with pytest.raises(ValueError, match="labelled no scalp voxel.*depth_prior = false"):
+        _depth_prior(Volume(lab.astype(np.float64), np.eye(4)), atlas, pri, None, None, post, SegmentConfig())

@@ -1,4 +1,4 @@
-"""CSF/skull priors by depth between the segmented brain and scalp (an MRI option of `segment`).
+"""CSF/skull priors by depth between the segmented brain and scalp (`segment`, on for MRI).
 
 On a T1 scan CSF and compact bone are both dark, so between the brain and the scalp the EM's split of
 the dark band into CSF and skull is decided by the registered atlas: where another head's inner skull

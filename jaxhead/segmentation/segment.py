@@ -1014,6 +1014,12 @@ def _depth_prior(volume: Volume, atlas: Atlas, priors: np.ndarray, unmodelled, p
     t0 = time.perf_counter()
     profile, _ = csf_depth_profile(np.asarray(atlas.priors), voxel_sizes(atlas.affine))
     labels = np.argmax(post, axis=0)
+    missing = [t.name.lower() for t in (Tissue.BRAIN, Tissue.SCALP) if not (labels == t).any()]
+    if missing:
+        raise ValueError(
+            f"[segment] depth_prior: the first EM labelled no {' and no '.join(missing)} voxel, so there is no "
+            "depth between brain and scalp; the scan may not be a head MRI (check `modality` and the scan), or "
+            "set depth_prior = false.")
     if pi is not None:  # the proportions learnt where the atlas models no bone are kept, not re-learnt
         priors = with_proportions(priors, unmodelled, pi)
     fit = _classify(volume, with_depth_profile(priors, labels, voxel_sizes(volume.affine), profile), cfg)
