@@ -107,7 +107,7 @@ def main():
 
     unmodelled = unmodelled_on_grid(vol, atlas, tr, cfg)  # as segment: two EM runs where it is set
     (post, res, opts, _), t_em1 = _timed(classify, vol, priors, cfg, unmodelled, key="em1")
-    (post, res, opts, _), t_em2 = _timed(classify, vol, priors, cfg, unmodelled, key="em2")
+    (post, res, opts, _, pi, _), t_em2 = _timed(_classify_all, vol, priors, cfg, unmodelled, key="em2")  # classify + pi
     n_iter = int(res.n_iter)
     runs = "" if unmodelled is None else ", two EM runs (unmodelled bone)"
     print(f"EM + MRF (classify{runs}; {n_iter} EM iterations on the {cfg.em_sample_mm:g} mm sample, "
@@ -117,7 +117,6 @@ def main():
     dice = _dice4(post.argmax(0), truth.labels)
     print("Dice brain, csf, skull, scalp:", np.round(dice, 3).tolist())
     if cfg.depth_prior_on():  # segment's default for MRI: the EM again on CSF/skull priors by depth
-        pi = _classify_all(vol, priors, cfg, unmodelled)[4]
         t_d = {}
         for key in ("depth1", "depth2"):
             (fit_d, summary), t_d[key] = _timed(_depth_prior, vol, atlas, np.asarray(priors), unmodelled, pi, post,

@@ -952,10 +952,11 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
         transform, (post, res, opts, coords, pi, sample), summary["warp_refinement"] = _refine_warp(
             volume, atlas, transform, (post, res, opts, coords, pi, sample), cfg)
     if cfg.depth_prior_on():
-        if cfg.refine_rounds() > 0:  # the priors of the refined warp
+        if cfg.refine_rounds() > 0:  # the priors (and unmodelled map) of the refined warp
             priors = resample(atlas.priors, atlas.affine, transform, volume.shape, volume.affine, dtype=_dtype(cfg))
+            unmodelled = unmodelled_on_grid(volume, atlas, transform, cfg)
         (post, res, opts, coords, pi, sample), summary["depth_prior"] = _depth_prior(
-            volume, atlas, np.asarray(priors), unmodelled_on_grid(volume, atlas, transform, cfg), pi, post, cfg)
+            volume, atlas, np.asarray(priors), unmodelled, pi, post, cfg)
     if cfg.modality == "ct" and cfg.bone_majority:
         post, info = bone_majority(np.asarray(volume.data), post)
         log.info("segment (ct): bone majority rule %s", {k: round(v, 1) for k, v in info.items()})
