@@ -134,6 +134,9 @@ def test_segment_held_out_head(modality, ants, cache):
     # experiments/results/segmentation_heldout_*.md
     assert d["brain"] > 0.9 and d["scalp"] > 0.85, d
     assert d["skull"] > 0.65 and d["csf"] > 0.25, d
+    if modality == "ct":  # the skin's partial-volume shell went to the air (`air_majority`)
+        air = r["air_majority"]
+        assert air["air_hu"] < air["threshold_hu"] < air["scalp_hu"] and air["removed"] > 0, air
 
 
 @needs_heads
