@@ -137,6 +137,8 @@ def test_segment_held_out_head(modality, ants, cache):
     if modality == "ct":  # the skin's partial-volume shell went to the air (`air_majority`)
         air = r["air_majority"]
         assert air["air_hu"] < air["threshold_hu"] < air["scalp_hu"] and air["removed"] > 0, air
+        bone = r["bone_majority"]  # so is the bone surface's (`bone_majority`)
+        assert bone["soft_hu"] < bone["threshold_hu"] < bone["bone_hu"], bone
 
 
 @needs_heads

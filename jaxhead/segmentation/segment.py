@@ -516,7 +516,9 @@ class Segmentation(eqx.Module):
         converged: whether the EM met its tolerance.
         atlas_name: the atlas used (`Atlas.name`: "mni152", "phantom", ...), for the run report.
         registration: plausibility figures of the affine registration (`registration_summary`):
-            scales, rotation (deg), determinant, NMI after the affine stage.
+            scales, rotation (deg), determinant, NMI after the affine stage; and what the later steps
+            did, each under its own key where it ran: "warp_refinement", "depth_prior" (MRI),
+            "bone_majority" and "air_majority" (CT: thresholds and voxels relabelled).
     """
 
     labels: LabelMap
@@ -964,7 +966,8 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
             volume, atlas, np.asarray(priors), unmodelled, pi, post, cfg)
     if cfg.modality == "ct" and cfg.bone_majority:
         post, info = bone_majority(np.asarray(volume.data), post)
-        log.info("segment (ct): bone majority rule %s", {k: round(v, 1) for k, v in info.items()})
+        summary["bone_majority"] = {k: round(v, 1) for k, v in info.items()}
+        log.info("segment (ct): bone majority rule %s", summary["bone_majority"])
     if cfg.modality == "ct" and cfg.air_majority:
         post, info = air_majority(np.asarray(volume.data), post)
         summary["air_majority"] = {k: round(v, 1) for k, v in info.items()}
