@@ -171,6 +171,25 @@ def test_lps_scan_segments_as_its_ras_twin(ants, cache):
         assert abs(d_ras[k] - d_lps[k]) < tol, (d_ras, d_lps)
 
 
+@needs_heads
+def test_ct_padding_outside_the_field_of_view_changes_nothing(ants, cache):
+    """A CT whose corners outside the reconstruction circle hold a padding value (-3024 HU) segments as
+    the same scan without it (`replace_ct_padding`), and the report counts the voxels replaced."""
+    vol = render(ants, "ct", noise=10.0, seed=0)
+    n0, n1 = vol.shape[:2]
+    x, y = np.arange(n0)[:, None] - n0 / 2, np.arange(n1)[None, :] - n1 / 2
+    outside = np.broadcast_to(((x ** 2 + y ** 2) > (0.5 * max(n0, n1)) ** 2)[..., None], vol.shape)
+    assert not (ants.labels().labels[outside] > 0).any()  # the circle clips no head voxel
+    padded = Volume(np.where(outside, -3024.0, vol.data), vol.affine)
+    cfg = SegmentConfig(modality="ct", atlas_voxel_mm=VOX)
+    truth = ants.labels()
+    lab, seg = segment_reported(padded, None, cfg)
+    assert seg.registration["ct_padding"]["voxels"] == int(outside.sum())
+    d_pad, d = dice_scores(lab, truth), dice_scores(segment(vol, None, cfg), truth)
+    for k in ("brain", "csf", "skull", "scalp"):
+        assert abs(d_pad[k] - d[k]) < 0.02, (d, d_pad)
+
+
 def test_label_map_on_another_grid_is_an_error(mni):
     a = mni.resampled(VOX)
     vol = render(a, "mri")
