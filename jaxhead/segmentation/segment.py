@@ -535,8 +535,9 @@ class Segmentation(eqx.Module):
 
 #: CT: voxels below this many HU are a scanner's padding (outside its reconstruction circle, or a
 #: DICOM pixel-padding value: -2048, -3024, -32768 on common scanners), not air: air is -1000 HU, and
-#: its noise (tens of HU) and a scanner's calibration offset (tens of HU) stay well above.
-CT_PADDING_BELOW_HU = -1100.0
+#: its noise (sd up to ~100 HU on a low-dose scan; 36-57 HU in the air of our 20 HU renderings, whose
+#: lowest voxels reach -1105) and a scanner's calibration offset (tens of HU) stay well above.
+CT_PADDING_BELOW_HU = -1500.0
 
 
 def replace_ct_padding(volume: Volume) -> tuple[Volume, dict]:
