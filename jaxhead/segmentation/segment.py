@@ -1146,12 +1146,9 @@ def bone_majority(hu: np.ndarray, posteriors: np.ndarray) -> tuple[np.ndarray, d
     soft = head & ~skull
     # skull voxels at or below T in a connected piece that touches soft tissue: partial volume at the
     # bone surface (dropped); pieces enclosed by bone above T: diploe (kept)
-    low = skull & ~bone
-    pieces, n = ndimage.label(low)
-    touches = np.unique(pieces[ndimage.binary_dilation(soft) & low])
     post = np.array(posteriors, copy=True)
     others = post.sum(0) - post[int(Tissue.SKULL)]
-    drop = np.isin(pieces, touches[touches > 0]) & (others > 1e-6)  # (no other class possible: keep skull)
+    drop = _pieces_touching(skull & ~bone, soft) & (others > 1e-6)  # (no other class possible: keep skull)
     post[:, bone] = 0.0
     post[int(Tissue.SKULL), bone] = 1.0
     post[int(Tissue.SKULL), drop] = 0.0
@@ -1159,6 +1156,14 @@ def bone_majority(hu: np.ndarray, posteriors: np.ndarray) -> tuple[np.ndarray, d
     post[:, drop] /= np.maximum(z, np.finfo(post.dtype).tiny)
     info = dict(bone_hu=b, soft_hu=s, threshold_hu=t, added=int((bone & ~sk).sum()), removed=int(drop.sum()))
     return post, info
+
+
+def _pieces_touching(mask: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """The voxels of `mask` in connected pieces (6-neighbourhood) with a voxel beside `other`
+    (6-neighbourhood): the partial-volume shell a majority rule relabels."""
+    pieces, _ = ndimage.label(mask)
+    touches = np.unique(pieces[ndimage.binary_dilation(other) & mask])
+    return np.isin(pieces, touches[touches > 0])
 
 
 def air_majority(hu: np.ndarray, posteriors: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -1197,9 +1202,7 @@ def air_majority(hu: np.ndarray, posteriors: np.ndarray) -> tuple[np.ndarray, di
     if not s > a:
         return posteriors, {}
     t = 0.5 * (a + s)
-    pieces, _ = ndimage.label(sc & (hu < t))
-    touches = np.unique(pieces[ndimage.binary_dilation(bg) & (pieces > 0)])
-    drop = np.isin(pieces, touches)
+    drop = _pieces_touching(sc & (hu < t), bg)
     post = np.array(posteriors, copy=True)
     post[:, drop] = 0.0
     post[int(Tissue.BACKGROUND), drop] = 1.0
