@@ -4,14 +4,17 @@ For each stage the first call includes XLA compilation, the second is the run al
 (`classify`: EM with priors, relaxation, MRF and bias field on a 2 mm sample, then mean-field sweeps on
 the 1 mm grid) is compared with the same algorithm in vectorised NumPy (float32, same iteration
 counts; timed for two iterations and extrapolated), and the ratio printed. Target: EM + MRF <= 20 s
-after compile. For MRI, `segment` then runs the depth prior (`SegmentConfig.depth_prior`, on for MRI:
-CSF/skull priors by depth between the segmented brain and scalp, and the EM again); it is timed too,
-and the target applies to both EM stages together.
+after compile. For MRI, `segment` then runs the layer split (`SegmentConfig.layer_split`, on for MRI:
+the CSF/skull change point in depth learnt from the scan, and the EM again); it is timed too, and so is
+the depth prior before it with --depth-prior (`SegmentConfig.depth_prior`, off by default since session
+16: CSF/skull priors by the atlas's profile in depth, and the EM again). The target applies to all EM
+stages together.
 
 With --refine-warp N the warp refinement on the EM's likelihood (`SegmentConfig.refine_warp`: N
 refinements, each followed by a new EM) is timed after the EM, first call and after compile.
 
 Usage: .venv/bin/python benchmarks/segment.py [--modality mri] [--seed 22] [--atlas mni152] [--refine-warp 1]
+       [--depth-prior]
 (seed 22 is a phantom head that fits the 181 x 217 x 181 grid without its neck.)
 """
 
@@ -29,7 +32,7 @@ import numpy as np  # noqa: E402
 
 from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.segmentation import SegmentConfig, classify, default_atlas, register_atlas  # noqa: E402
-from jaxhead.segmentation.segment import _classify_all, _depth_prior, _em_data, _refine_warp, unmodelled_on_grid  # noqa: E402
+from jaxhead.segmentation.segment import _classify_all, _depth_prior, _em_data, _layer_split, _refine_warp, unmodelled_on_grid  # noqa: E402
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
 
@@ -86,6 +89,7 @@ def main():
     p.add_argument("--atlas", default="mni152", choices=["mni152", "phantom"],
                    help="default atlas: real anatomy (mni152, the product default) or the phantom atlas")
     p.add_argument("--refine-warp", type=int, default=0, help="also time this many rounds of warp refinement")
+    p.add_argument("--depth-prior", action="store_true", help="MRI: run the depth prior before the layer split")
     args = p.parse_args()
 
     print(f"jax {jax.__version__}, devices {jax.devices()}")
@@ -96,7 +100,7 @@ def main():
     atlas = default_atlas(args.modality, atlas=args.atlas)
     print(f"default atlas {atlas.name!r} {atlas.shape} ({atlas.n_subjects} subjects): {time.perf_counter() - t:.1f} s "
           "(cached after the first use)")
-    cfg = SegmentConfig(modality=args.modality, atlas=args.atlas)
+    cfg = SegmentConfig(modality=args.modality, atlas=args.atlas, depth_prior=True if args.depth_prior else None)
 
     print(_load())
     (tr, priors), t_reg1 = _timed(register_atlas, vol, atlas, cfg, key="reg1")
@@ -107,7 +111,7 @@ def main():
 
     unmodelled = unmodelled_on_grid(vol, atlas, tr, cfg)  # as segment: two EM runs where it is set
     (post, res, opts, _), t_em1 = _timed(classify, vol, priors, cfg, unmodelled, key="em1")
-    (post, res, opts, _, pi, _), t_em2 = _timed(_classify_all, vol, priors, cfg, unmodelled, key="em2")  # classify + pi
+    (post, res, opts, coords, pi, _), t_em2 = _timed(_classify_all, vol, priors, cfg, unmodelled, key="em2")  # + pi
     n_iter = int(res.n_iter)
     runs = "" if unmodelled is None else ", two EM runs (unmodelled bone)"
     print(f"EM + MRF (classify{runs}; {n_iter} EM iterations on the {cfg.em_sample_mm:g} mm sample, "
@@ -116,18 +120,24 @@ def main():
           f"{_load()}")
     dice = _dice4(post.argmax(0), truth.labels)
     print("Dice brain, csf, skull, scalp:", np.round(dice, 3).tolist())
-    if cfg.depth_prior_on():  # segment's default for MRI: the EM again on CSF/skull priors by depth
-        t_d = {}
-        for key in ("depth1", "depth2"):
-            (fit_d, summary), t_d[key] = _timed(_depth_prior, vol, atlas, np.asarray(priors), unmodelled, pi, post,
-                                                 cfg, key=key)
-        total = t_em2 + t_d["depth2"]
-        print(f"depth prior (CSF/skull priors by depth between brain and scalp, then EM + MRF): first call "
-              f"{t_d['depth1']:.1f} s, after compile {t_d['depth2']:.1f} s (CPU {CPU['depth2']:.1f} s), relabelled "
-              f"{summary['relabelled_fraction']:.4f}; EM + MRF in all, as segment runs it: {total:.1f} s "
+    total, fit_prev = t_em2, (post, res, opts, coords)
+    later = []  # the MRI steps after the first EM, in segment's order: (name, what, step, its arguments)
+    if cfg.depth_prior_on():  # off by default since session 16 (--depth-prior)
+        later.append(("depth prior", "CSF/skull priors by the atlas's profile in depth", _depth_prior,
+                      lambda f: (vol, atlas, np.asarray(priors), unmodelled, pi, f[0], cfg)))
+    if cfg.layer_split_on():  # on for MRI
+        later.append(("layer split", "the CSF/skull change point in depth learnt from the scan", _layer_split,
+                      lambda f: (vol, np.asarray(priors), unmodelled, pi, f[:4], cfg)))
+    for name, what, step, arguments in later:
+        t = {}
+        for key in ("1", "2"):
+            (fit, summary), t[key] = _timed(step, *arguments(fit_prev), key=name + key)
+        total += t["2"]
+        print(f"{name} ({what}, then EM + MRF): first call {t['1']:.1f} s, after compile {t['2']:.1f} s (CPU "
+              f"{CPU[name + '2']:.1f} s), {summary}; EM + MRF in all, as segment runs it: {total:.1f} s "
               f"(target <= 20 s: {'met' if total <= 20 else 'NOT met'}); {_load()}")
-        dice = _dice4(fit_d[0].argmax(0), truth.labels)
-        print("Dice brain, csf, skull, scalp after the depth prior:", np.round(dice, 3).tolist())
+        print(f"Dice brain, csf, skull, scalp after the {name}:", np.round(_dice4(fit[0].argmax(0), truth.labels), 3).tolist())
+        fit_prev = fit
     if args.refine_warp:
         rcfg = SegmentConfig(modality=args.modality, atlas=args.atlas, refine_warp=args.refine_warp)
         fit = _classify_all(vol, priors, rcfg, unmodelled)

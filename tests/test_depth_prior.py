@@ -106,8 +106,8 @@ def test_depth_prior_is_an_mri_option():
 
 
 @needs_heads
-def test_segment_reports_the_depth_prior(tmp_path, monkeypatch):
-    """The option end to end on a head the atlas never saw (the ANTs head, 4 mm MRI)."""
+def test_segment_reports_the_depth_prior_and_the_layer_split(tmp_path, monkeypatch):
+    """Both MRI steps end to end on a head the atlas never saw (the ANTs head, 4 mm MRI)."""
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     ants = ants_anatomy(HEADS).resampled(4.0)
     vol = render(ants, "mri", noise=0.03, bias=0.2, seed=1)
@@ -115,6 +115,9 @@ def test_segment_reports_the_depth_prior(tmp_path, monkeypatch):
     rep = seg.registration["depth_prior"]
     assert len(rep["profile"]) == 20 and np.all(np.diff(rep["profile"]) <= 0) and rep["profile"][0] > 0.5
     assert 0 < rep["relabelled_fraction"] < 0.1
+    split = seg.registration["layer_split"]
+    assert 1 <= split["iterations"] <= 20 and 0.1 < split["csf_fraction"] < 0.9, split
+    assert 0 <= split["relabelled_fraction"] < 0.1 and split["window_mm"] == 6.0
     d = dice_scores(labels, ants.labels())
     assert d["brain"] > 0.9 and d["scalp"] > 0.85 and d["skull"] > 0.65, d
 

@@ -1,4 +1,5 @@
-"""CSF/skull priors by depth between the segmented brain and scalp (`segment`, on for MRI).
+"""CSF/skull priors by depth between the segmented brain and scalp (`segment`, MRI): the atlas's profile
+in depth (`depth_prior`, off by default) and the change point learnt from the scan (`layer_split`, on).
 
 On a T1 scan CSF and compact bone are both dark, so between the brain and the scalp the EM's split of
 the dark band into CSF and skull is decided by the registered atlas: where another head's inner skull
@@ -112,6 +113,151 @@ def with_depth_profile(priors, labels: np.ndarray, voxel_mm, profile: np.ndarray
     t = layer_depth(labels == Tissue.BRAIN, labels == Tissue.SCALP, voxel_mm)
     n = len(profile)
     p = np.interp(t, (np.arange(n) + 0.5) / n, profile).astype(np.float32)
+    both = out[int(Tissue.CSF)] + out[int(Tissue.SKULL)]
+    out[int(Tissue.CSF)] = both * p
+    out[int(Tissue.SKULL)] = both * (1 - p)
+    return out
+
+
+# --- The CSF/skull split learnt from the scan (`layer_split`) -----------------------------------------
+#
+# The atlas's p(CSF | t) assumes the scan's band has the atlas's CSF share at each relative depth. Where
+# it has not (another head's thicker or thinner CSF), at high noise the prior decides, and the EM's CSF
+# and skull Gaussians are fitted to the prior's split (measured: experiments/results/segmentation_layer_split.md).
+# The band has a structure the atlas does not need to supply: along the depth, CSF lies inside the
+# skull. So each neighbourhood of the band is modelled as one change point tau in t, CSF below and skull
+# above, and tau is learnt from the scan's intensities alone:
+#   1. the intensity densities of CSF and skull are the histograms of the band's voxels below and above
+#      the current tau (no parametric form: Rician intensities of dark tissue are skewed in log);
+#   2. per voxel, the log ratio of the two densities, L(y);
+#   3. at every voxel, tau = argmax_k sum_j w_j [t_j < tau_k] L(y_j) over band voxels j, w a Gaussian
+#      window of `sigma_mm` (the split of that neighbourhood of highest likelihood);
+# repeated from tau = 1/2 until (almost) no band voxel changes side. The EM then runs again with each
+# voxel's CSF + skull prior shared by a logistic step at tau (`with_local_split`).
+
+#: candidate change points tau in [0, 1]
+SPLIT_STEPS = 21
+#: histogram bins of the band's intensities (between its 0.5th and 99.5th percentiles), and the
+#: smoothing of the histograms in bins
+SPLIT_BINS, SPLIT_SMOOTH_BINS = 64, 1.5
+#: stop when fewer than this fraction of band voxels change side in an iteration, or after SPLIT_MAX_ITER
+SPLIT_TOL, SPLIT_MAX_ITER = 2e-3, 20
+
+
+def density_log_ratio(y: np.ndarray, inner: np.ndarray, outer: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """log p_inner(y) - log p_outer(y) per value of `y`, each density a smoothed histogram (SPLIT_BINS
+    bins over [lo, hi], values outside in the end bins) of the values of `y` in its mask.
+
+    Arguments:
+        y: (n,) intensities (any monotone scale).
+        inner, outer: (n,) boolean masks of the two classes' values.
+        lo, hi: the histograms' range.
+    Returns:
+        (n,) float64 log ratio (0 where hi <= lo: no contrast to learn).
+    """
+    if not hi > lo:
+        return np.zeros(len(y))
+    edges = np.linspace(lo, hi, SPLIT_BINS + 1)
+    dens = []
+    for m in (inner, outer):
+        h, _ = np.histogram(np.clip(y[m], lo, hi), edges)
+        h = ndimage.gaussian_filter1d(h + 1.0, SPLIT_SMOOTH_BINS, mode="nearest")  # +1: no empty bin
+        dens.append(np.log(h / h.sum()))
+    idx = np.clip(np.searchsorted(edges, y, side="right") - 1, 0, SPLIT_BINS - 1)
+    return (dens[0] - dens[1])[idx]
+
+
+def _block(voxel_mm, sigma_mm: float) -> np.ndarray:
+    """Voxels per block of the coarse grid of the change points: about sigma / 2 (mm) per side."""
+    return np.maximum(1, np.round(0.5 * sigma_mm / np.asarray(voxel_mm, np.float64))).astype(np.int64)
+
+
+def local_change_point(t: np.ndarray, band: np.ndarray, llr: np.ndarray, voxel_mm, sigma_mm: float) -> np.ndarray:
+    """Per block of a coarse grid (`_block`), the tau_k of highest windowed likelihood,
+    argmax_k sum_j G_sigma(x - x_j) [t_j < tau_k] llr_j over band voxels j (each counted at its block's
+    centre, so the window is exact to half a block).
+
+    Arguments:
+        t: (x, y, z) normalised depth (`layer_depth`).
+        band: (x, y, z) boolean: the CSF + skull band.
+        llr: (x, y, z) or (n_band,) log p_CSF / p_skull of each (band) voxel's intensity.
+        voxel_mm: voxel sizes (3,), mm.
+        sigma_mm: the Gaussian window's sd, mm.
+    Returns:
+        (coarse grid) tau in [0, 1] (SPLIT_STEPS candidates; 0 where the window holds no band voxel);
+        `upsample` puts it on the voxel grid.
+    """
+    taus = np.linspace(0.0, 1.0, SPLIT_STEPS)
+    b = _block(voxel_mm, sigma_mm)
+    cshape = tuple(int(-(-n // k)) for n, k in zip(t.shape, b))
+    idx = np.nonzero(band)
+    llr = np.asarray(llr, np.float64)
+    w = llr[idx] if llr.shape == t.shape else llr
+    cell = np.ravel_multi_index(tuple(i // k for i, k in zip(idx, b)), cshape)
+    k_of = np.searchsorted(taus, t[idx], side="right")  # voxel j counts for every tau_k with k >= k_of[j]
+    sums = np.bincount(cell * (SPLIT_STEPS + 1) + k_of, w, int(np.prod(cshape)) * (SPLIT_STEPS + 1))
+    acc = np.cumsum(sums.reshape(cshape + (SPLIT_STEPS + 1,))[..., :SPLIT_STEPS], axis=-1)
+    sig = sigma_mm / (np.asarray(voxel_mm, np.float64) * b)
+    acc = ndimage.gaussian_filter(acc, tuple(sig) + (0.0,), mode="constant")
+    return taus[np.argmax(acc, axis=-1)]
+
+
+def upsample(coarse: np.ndarray, shape, voxel_mm, sigma_mm: float, points=None) -> np.ndarray:
+    """`local_change_point`'s coarse grid interpolated (linearly between block centres) onto the voxel
+    grid of `shape`, or at the voxel indices `points` (a tuple of index arrays)."""
+    b = _block(voxel_mm, sigma_mm)
+    full = None
+    if points is None:
+        full = points = np.indices(shape, dtype=np.float64).reshape(3, -1)
+    c = np.stack([(np.asarray(p, np.float64) - (k - 1) / 2.0) / k for p, k in zip(points, b)])
+    out = ndimage.map_coordinates(coarse, c, order=1, mode="nearest")
+    return out if full is None else out.reshape(shape)
+
+
+def fit_layer_split(y: np.ndarray, t: np.ndarray, band: np.ndarray, voxel_mm, sigma_mm: float) -> tuple[np.ndarray, dict]:
+    """The band's CSF/skull change point in depth, learnt from its intensities (the comment above).
+
+    Arguments:
+        y: (x, y, z) intensities (MRI: bias-corrected log intensity).
+        t: (x, y, z) normalised depth (`layer_depth`).
+        band: (x, y, z) boolean: the voxels a first segmentation labelled CSF or skull.
+        voxel_mm: voxel sizes (3,), mm.
+        sigma_mm: the neighbourhood (Gaussian window sd, mm) that shares one change point.
+    Returns:
+        (tau (x, y, z) in [0, 1], summary: iterations, fraction of the band that changed side in the
+        last one, the band's CSF fraction).
+    """
+    band = np.asarray(band, bool)
+    if not band.any():
+        raise ValueError("fit_layer_split: the `band` mask is empty (no CSF or skull voxel to split).")
+    idx = np.nonzero(band)
+    yb, tb = np.asarray(y, np.float64)[idx], np.asarray(t, np.float64)[idx]
+    lo, hi = np.percentile(yb, [0.5, 99.5])
+    inner = tb < 0.5
+    changed, it, coarse = 1.0, 0, None
+    while changed >= SPLIT_TOL and it < SPLIT_MAX_ITER:
+        llr = density_log_ratio(yb, inner, ~inner, lo, hi)
+        coarse = local_change_point(t, band, llr, voxel_mm, sigma_mm)
+        new = tb < upsample(coarse, t.shape, voxel_mm, sigma_mm, idx)
+        changed = float((new != inner).mean())
+        inner, it = new, it + 1
+    summary = dict(iterations=it, changed_fraction=round(changed, 5), csf_fraction=round(float(inner.mean()), 4))
+    return upsample(coarse, t.shape, voxel_mm, sigma_mm), summary
+def with_local_split(priors, t: np.ndarray, tau: np.ndarray, width: float) -> np.ndarray:
+    """Priors whose CSF + skull mass at each voxel is shared by a logistic step in depth at the voxel's
+    change point: p(CSF) = 1 / (1 + exp((t - tau) / width)); the other classes are unchanged.
+
+    Arguments:
+        priors: (5, x, y, z) class priors.
+        t, tau: (x, y, z) normalised depth and change point (`fit_layer_split`).
+        width: the step's width in t (> 0).
+    Returns:
+        (5, x, y, z) float32 priors.
+    """
+    if not width > 0:
+        raise ValueError(f"with_local_split: `width` must be > 0, got {width}.")
+    out = np.array(priors, np.float32)
+    p = (0.5 * (1.0 + np.tanh((tau - t) / (2.0 * width)))).astype(np.float32)  # the logistic, overflow-free
     both = out[int(Tissue.CSF)] + out[int(Tissue.SKULL)]
     out[int(Tissue.CSF)] = both * p
     out[int(Tissue.SKULL)] = both * (1 - p)

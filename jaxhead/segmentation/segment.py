@@ -8,8 +8,10 @@ Pipeline (one method for both modalities, as the seed's CT branch: Vonach et al.
    grid (`em_sample_mm`, as SPM samples every 3 mm to estimate its mixture), em.py; by default for CT
    on the scan after edge-preserving smoothing tied to its estimated noise (`denoise`, denoise.py),
 4. posteriors on the full grid at the fitted parameters with mean-field MRF sweeps,
-4b. MRI: the CSF/skull priors shared by depth between the segmented brain and scalp, and 3-4 again
-   (`depth_prior.py`, `SegmentConfig.depth_prior`),
+4b. MRI: the CSF/skull change point in depth between the segmented brain and scalp learnt from the
+   scan's own intensities in the dark band between them (CSF inside the skull), the CSF/skull priors
+   shared by a step at it, and 3-4 again (`depth_prior.fit_layer_split`, `SegmentConfig.layer_split`;
+   optionally first the atlas's profile in depth, `SegmentConfig.depth_prior`),
 5. CT: the bone surface and the skin relabelled by the partial-volume majority rule (`bone_majority`,
    `air_majority`),
 6. hard labels = argmax of the five class posteriors (BACKGROUND, BRAIN, CSF, SKULL, SCALP).
@@ -32,6 +34,8 @@ What the intensity model assumes (and what it learns from the scan):
   multiplicative bias field (Legendre polynomial, degree 4; tens of per cent), noise small against
   the tissue contrasts (a few per cent). CT: Hounsfield units (air near -1000), no bias field.
 - Tissue boundaries are smooth on the voxel scale (Potts MRF, beta).
+- MRI: between the brain and the scalp, CSF lies inside the skull, and within a neighbourhood of
+  LAYER_SPLIT_MM the CSF's share of the band's depth changes little (`layer_split`).
 - `denoise`: the noise is uncorrelated between voxels and roughly stationary (CT: additive, its sd
   estimated from neighbour differences; MRI: Rician magnitude, its channel sd estimated from the air
   around the head, Rayleigh), and tissue steps of more than ~2 noise sd are edges (MRI: in the
@@ -65,7 +69,7 @@ from scipy import ndimage
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, voxel_sizes
 from .atlas import N_CLASSES, Atlas, check_atlas_kind, default_atlas, regional_proportions, with_proportions
-from .depth_prior import csf_depth_profile, with_depth_profile
+from .depth_prior import csf_depth_profile, fit_layer_split, layer_depth, with_depth_profile, with_local_split
 from .denoise import diffuse, log_noise_table, noise_sd, rayleigh_noise_sd
 from .em import EMOptions, MixtureParams, NoiseFloor, bias_field, fit_mixture, infer_posteriors
 from .register import (
@@ -214,7 +218,7 @@ DEFAULT_WARP_CHANGE_MM = {"mri": 4.0, "ct": 4.0}
 #: rows met every bar with denoise alone), 2 mm MNI152 3 % 0.678/0.846 (0.752/0.859, met, with denoise
 #: alone). So denoise's 8 % gains came from the same sharper likelihood that costs the 3 % CSF.
 DEFAULT_NOISE_FLOOR = {"mri": False, "ct": False}
-#: `depth_prior` (depth_prior.py): on for MRI. Measured on the held-out MRI (minimum Dice brain/CSF/
+#: `depth_prior` (depth_prior.py): on for MRI in sessions 14-15. Measured on the held-out MRI (minimum Dice brain/CSF/
 #: skull/scalp, experiments/results/segmentation_depth_prior.md): 2 mm MNI152 3 % 0.975/0.669/0.838/
 #: 0.968 -> 0.981/0.878/0.906/0.965 (now meets every bar), ANTs 8 % skull 0.776 -> 0.828; 1 mm
 #: MNI152 8 % 0.979/0.677/0.875/0.999 -> 0.980/0.777/0.912/0.999 (now meets every bar); no bar met
@@ -224,7 +228,24 @@ DEFAULT_NOISE_FLOOR = {"mri": False, "ct": False}
 #: what fails there, and the depth prior, measured at 2 mm on the ANTs head (before the bone majority
 #: rule), costs skull 0.968 -> 0.729 (the refit's CSF Gaussian takes bone partial volume): hence an
 #: error with a CT.
-DEFAULT_DEPTH_PRIOR = {"mri": True, "ct": False}
+#: Session 16: off by default, also for MRI. The layer split (below) learns the CSF/skull split from the
+#: scan and replaces the split the depth prior sets; run after the first EM it meets the same bars as
+#: after the depth prior (2 mm minimum CSF/skull, ANTs 8 % 0.727/0.858 against 0.739/0.862, MNI152 8 %
+#: 0.778/0.895 against 0.789/0.899; experiments/results/segmentation_layer_split.md) and saves the depth
+#: prior's EM (6.9 s of the 1 mm benchmark).
+DEFAULT_DEPTH_PRIOR = {"mri": False, "ct": False}
+#: `layer_split` (depth_prior.fit_layer_split): on for MRI. Measured on the held-out MRI, 2 mm (minimum
+#: Dice brain/CSF/skull/scalp, experiments/results/segmentation_layer_split.md): MNI152 8 %
+#: 0.974/0.644/0.845/0.981 -> 0.975/0.789/0.899/0.979 (now meets every bar), ANTs 8 %
+#: 0.967/0.707/0.828/0.963 -> 0.967/0.735/0.860/0.969, the 3 % rows within -0.006..+0.015. On CT the
+#: bone is bright, so intensity alone splits CSF from skull: an error with a CT.
+DEFAULT_LAYER_SPLIT = {"mri": True, "ct": False}
+#: the neighbourhood that shares one CSF/skull change point (Gaussian window sd, mm) and the width (in
+#: normalised depth) of the prior's step at it. Measured at 2 mm (same file): window 4 / 6 / 8 / 12 mm
+#: gives the 8 % CSF minima 0.734 / 0.735 / 0.731 / 0.713 (ANTs) and 0.792 / 0.789 / 0.774 / 0.739
+#: (MNI152); width 0.05 and 0.1 within 0.01 of each other (the same file). 6 mm: the middle of the flat range.
+LAYER_SPLIT_MM = 6.0
+LAYER_SPLIT_WIDTH = 0.1
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -330,8 +351,13 @@ class SegmentConfig:
         depth_prior: MRI: after the EM, share each voxel's CSF + skull prior by the atlas's p(CSF | t), t
             the voxel's normalised depth between the segmented brain and scalp, and run the EM again
             (`jaxhead.segmentation.depth_prior`: the band's boundaries are seen on T1, its CSF/skull
-            split is not). None: the modality default (DEFAULT_DEPTH_PRIOR: on for MRI); True with a CT
-            is an error.
+            split is not). None: the modality default (DEFAULT_DEPTH_PRIOR: off; `layer_split` learns
+            the split from the scan instead); True with a CT is an error.
+        layer_split: MRI: after the EM (and the depth prior where it is on), learn the CSF/skull change point in depth
+            between the segmented brain and scalp from the scan's own intensities, per neighbourhood
+            (`depth_prior.fit_layer_split`: CSF inside the skull; LAYER_SPLIT_MM), share each voxel's
+            CSF + skull prior by a step at it (`depth_prior.with_local_split`) and run the EM again.
+            None: the modality default (DEFAULT_LAYER_SPLIT: on for MRI); True with a CT is an error.
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
             outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
             MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
@@ -365,6 +391,7 @@ class SegmentConfig:
     warp_change_mm: float | None = None
     noise_floor: bool | None = None
     depth_prior: bool | None = None
+    layer_split: bool | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -445,6 +472,9 @@ class SegmentConfig:
         _check_modality_switch("depth_prior", self.depth_prior, self.modality, "mri",
                                "(T1: CSF and bone both dark); on CT the bone is bright and the depth prior was "
                                "measured to cost skull Dice.")
+        _check_modality_switch("layer_split", self.layer_split, self.modality, "mri",
+                               "(T1: CSF and bone both dark); on CT the bone is bright, so the intensities "
+                               "split CSF from skull without it.")
         if not isinstance(self.check_registration, (bool, np.bool_)):
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
@@ -457,6 +487,10 @@ class SegmentConfig:
     def depth_prior_on(self) -> bool:
         """Whether the CSF/skull priors follow depth (`depth_prior`, or the modality default)."""
         return DEFAULT_DEPTH_PRIOR[self.modality] if self.depth_prior is None else bool(self.depth_prior)
+
+    def layer_split_on(self) -> bool:
+        """Whether the CSF/skull split is learnt from the scan (`layer_split`, or the modality default)."""
+        return DEFAULT_LAYER_SPLIT[self.modality] if self.layer_split is None else bool(self.layer_split)
 
     def refine_rounds(self) -> int:
         """Rounds of warp refinement (`refine_warp`, or the modality default)."""
@@ -517,7 +551,7 @@ class Segmentation(eqx.Module):
         atlas_name: the atlas used (`Atlas.name`: "mni152", "phantom", ...), for the run report.
         registration: plausibility figures of the affine registration (`registration_summary`):
             scales, rotation (deg), determinant, NMI after the affine stage; and what the later steps
-            did, each under its own key where it ran: "warp_refinement", "depth_prior" (MRI),
+            did, each under its own key where it ran: "warp_refinement", "depth_prior" (MRI), "layer_split" (MRI),
             "bone_majority" and "air_majority" (CT: thresholds and voxels relabelled).
     """
 
@@ -1002,6 +1036,12 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
             unmodelled = unmodelled_on_grid(volume, atlas, transform, cfg)
         (post, res, opts, coords, pi, sample), summary["depth_prior"] = _depth_prior(
             volume, atlas, np.asarray(priors), unmodelled, pi, post, cfg)
+    if cfg.layer_split_on():
+        if cfg.refine_rounds() > 0 and not cfg.depth_prior_on():
+            priors = resample(atlas.priors, atlas.affine, transform, volume.shape, volume.affine, dtype=_dtype(cfg))
+            unmodelled = unmodelled_on_grid(volume, atlas, transform, cfg)
+        (post, res, opts, coords, pi, sample), summary["layer_split"] = _layer_split(
+            volume, np.asarray(priors), unmodelled, pi, (post, res, opts, coords), cfg)
     if cfg.modality == "ct" and cfg.bone_majority:
         post, info = bone_majority(np.asarray(volume.data), post)
         summary["bone_majority"] = {k: round(v, 1) for k, v in info.items()}
@@ -1065,12 +1105,7 @@ def _depth_prior(volume: Volume, atlas: Atlas, priors: np.ndarray, unmodelled, p
     t0 = time.perf_counter()
     profile, _ = csf_depth_profile(np.asarray(atlas.priors), voxel_sizes(atlas.affine))
     labels = np.argmax(post, axis=0)
-    missing = [t.name.lower() for t in (Tissue.BRAIN, Tissue.SCALP) if not (labels == t).any()]
-    if missing:
-        raise ValueError(
-            f"[segment] depth_prior: the first EM labelled no {' and no '.join(missing)} voxel, so there is no "
-            "depth between brain and scalp; the scan may not be a head MRI (check `modality` and the scan), or "
-            "set depth_prior = false.")
+    _brain_and_scalp(labels, "depth_prior")
     if pi is not None:  # the proportions learnt where the atlas models no bone are kept, not re-learnt
         priors = with_proportions(priors, unmodelled, pi)
     fit = _classify(volume, with_depth_profile(priors, labels, voxel_sizes(volume.affine), profile), cfg)
@@ -1080,6 +1115,47 @@ def _depth_prior(volume: Volume, atlas: Atlas, priors: np.ndarray, unmodelled, p
                    seconds=round(time.perf_counter() - t0, 1))
     log.info("segment (%s): CSF/skull priors by depth between brain and scalp: %s", cfg.modality, summary)
     return fit, summary
+
+
+def _brain_and_scalp(labels: np.ndarray, step: str) -> None:
+    missing = [t.name.lower() for t in (Tissue.BRAIN, Tissue.SCALP) if not (labels == t).any()]
+    if missing:
+        raise ValueError(
+            f"[segment] {step}: the first EM labelled no {' and no '.join(missing)} voxel, so there is no "
+            "depth between brain and scalp; the scan may not be a head MRI (check `modality` and the scan), or "
+            f"set {step} = false.")
+
+
+def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: SegmentConfig):
+    """The EM again on priors whose CSF/skull split is a step at the change point in depth learnt from
+    the scan (`depth_prior.fit_layer_split` on the bias-corrected EM data, in the CSF + skull band of
+    `fit`; `with_local_split`), after the learnt proportions `pi` (None: none) where the atlas models no
+    bone. `fit` is (posteriors, EMResult, EMOptions, coords). Returns (`_classify_all`'s output,
+    summary for the run report)."""
+    t0 = time.perf_counter()
+    post, res, opts, coords = fit
+    labels = np.argmax(post, axis=0)
+    _brain_and_scalp(labels, "layer_split")
+    denoise = DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
+    y, _ = _em_data_noise(volume, cfg.modality, denoise)
+    if opts.bias_degree > 0:
+        y = y - np.asarray(bias_field(res.params.bias, coords, opts.bias_degree), dtype=np.float64)
+    vox = voxel_sizes(volume.affine)
+    t = layer_depth(labels == Tissue.BRAIN, labels == Tissue.SCALP, vox)
+    band = (labels == Tissue.CSF) | (labels == Tissue.SKULL)
+    if not band.any():
+        raise ValueError("[segment] layer_split: the first EM labelled no CSF and no skull voxel, so there is no "
+                         "band to split; check the scan and `modality`, or set layer_split = false.")
+    tau, summary = fit_layer_split(y, t, band, vox, LAYER_SPLIT_MM)
+    if pi is not None:  # the proportions learnt where the atlas models no bone are kept, not re-learnt
+        priors = with_proportions(priors, unmodelled, pi)
+    new = _classify(volume, with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH), cfg)
+    new = new[:4] + (pi,) + new[5:]
+    summary.update(window_mm=LAYER_SPLIT_MM, width=LAYER_SPLIT_WIDTH,
+                   relabelled_fraction=round(float((np.argmax(new[0], axis=0) != labels).mean()), 4),
+                   seconds=round(time.perf_counter() - t0, 1))
+    log.info("segment (%s): CSF/skull split learnt from the scan's band: %s", cfg.modality, summary)
+    return new, summary
 
 
 def config_atlas(cfg: SegmentConfig) -> Atlas:

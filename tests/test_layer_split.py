@@ -1,0 +1,137 @@
+"""The CSF/skull change point in depth learnt from the scan (depth_prior.fit_layer_split, `layer_split`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxhead.segmentation import SegmentConfig
+from jaxhead.segmentation.depth_prior import (
+    SPLIT_STEPS,
+    SPLIT_TOL,
+    _block,
+    density_log_ratio,
+    fit_layer_split,
+    layer_depth,
+    local_change_point,
+    upsample,
+    with_local_split,
+)
+from jaxhead.tissue import Tissue
+
+
+def test_density_log_ratio_is_the_analytic_gaussian_log_ratio():
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(0.0, 1.0, 400_000), rng.normal(1.0, 1.0, 400_000)
+    y = np.concatenate([a, b])
+    inner = np.arange(len(y)) < len(a)
+    lo, hi = np.percentile(y, [0.5, 99.5])
+    llr = density_log_ratio(y, inner, ~inner, lo, hi)
+    exact = 0.5 - y  # log N(y; 0, 1) - log N(y; 1, 1)
+    mid = (y > -1.0) & (y < 2.0)  # where both densities hold many samples
+    assert np.abs(llr[mid] - exact[mid]).max() < 0.1
+    assert np.all(density_log_ratio(np.ones(5), np.ones(5, bool), np.ones(5, bool), 1.0, 1.0) == 0)
+
+
+def test_local_change_point_is_the_windowed_argmax_by_brute_force():
+    """With one voxel per block the coarse grid is the voxel grid: every voxel's tau maximises the
+    Gaussian-weighted sum of the band's log ratios below it (computed directly, no truncation)."""
+    rng = np.random.default_rng(1)
+    shape, vox, sigma = (9, 8, 7), (1.0, 1.0, 1.0), 1.5
+    assert np.all(_block(vox, sigma) == 1)
+    t = rng.random(shape)
+    band = rng.random(shape) < 0.6
+    llr = rng.normal(0.0, 1.0, shape)
+    tau = local_change_point(t, band, llr, vox, sigma)
+    taus = np.linspace(0.0, 1.0, SPLIT_STEPS)
+    pts = np.stack(np.nonzero(band), 1).astype(float)
+    tb, lb = t[band], llr[band]
+    for x in np.ndindex(shape):
+        w = np.exp(-0.5 * ((pts - np.asarray(x)) ** 2).sum(1) / sigma**2)
+        score = np.array([(w * lb * (tb < tk)).sum() for tk in taus])
+        k = int(np.argmin(np.abs(taus - tau[x])))
+        assert score[k] >= score.max() - 1e-6 * np.abs(score).max()
+
+
+def test_upsample_puts_block_centres_on_the_coarse_values():
+    coarse = np.arange(24, dtype=float).reshape(2, 3, 4)
+    vox, sigma = (1.0, 1.0, 1.0), 6.0  # blocks of 3 voxels: centres at 1, 4, 7, ...
+    full = upsample(coarse, (6, 9, 12), vox, sigma)
+    assert np.allclose(full[1::3, 1::3, 1::3], coarse)
+    assert np.allclose(full[2, 4, 7], coarse[0, 1, 2] + (coarse[1, 1, 2] - coarse[0, 1, 2]) / 3)
+
+
+def _radius_angle(n, vox):
+    g = (np.arange(n) - (n - 1) / 2) * vox
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    r = np.sqrt(x**2 + y**2 + z**2)
+    return r, x / np.maximum(r, 1e-9)
+
+
+def test_fit_layer_split_recovers_a_varying_csf_thickness_where_voxels_cannot():
+    """Nested shells whose CSF/skull boundary moves with direction (CSF 1.5-6.5 mm thick), intensities of
+    CSF and skull one sd apart (Gaussian, as a noisy T1's dark band): the change point learnt from the
+    scan labels the band's CSF far better than the best per-voxel rule with the true densities."""
+    vox = 1.0
+    r, c = _radius_angle(72, vox)
+    r_split = 17.0 + 2.5 * c  # the CSF/skull boundary: 14.5-19.5 mm
+    brain, scalp = r < 13.0, (r >= 26.0) & (r < 30.0)
+    band = (r >= 13.0) & (r < 26.0)
+    csf = band & (r < r_split)
+    rng = np.random.default_rng(2)
+    y = np.where(csf, 0.30, 0.15) + rng.normal(0.0, 0.15, r.shape)
+    t = layer_depth(brain, scalp, (vox,) * 3)
+    tau, summary = fit_layer_split(y, t, band, (vox,) * 3, 6.0)
+    found = band & (t < tau)
+
+    def dice(a, b):
+        return 2 * (a & b).sum() / (a.sum() + b.sum())
+
+    voxelwise = band & (y > 0.225)  # equal sds: the maximum-likelihood threshold
+    assert dice(voxelwise, csf) < 0.75
+    assert dice(found, csf) > 0.93, (dice(found, csf), summary)
+    t_split = (r_split - 13.0) / (26.0 - 13.0)  # the true change point in (exact) normalised depth
+    assert np.median(np.abs(tau[band] - t_split[band])) < 0.05
+    assert summary["iterations"] < 20 and summary["changed_fraction"] < SPLIT_TOL
+
+
+def test_with_local_split_keeps_the_mass_and_steps_at_tau():
+    rng = np.random.default_rng(3)
+    pri = rng.random((5, 6, 5, 4)).astype(np.float32)
+    pri /= pri.sum(0)
+    t, tau = rng.random((6, 5, 4)), rng.random((6, 5, 4))
+    out = with_local_split(pri, t, tau, 0.1)
+    assert np.allclose(out[2] + out[3], pri[2] + pri[3], atol=1e-6)
+    for k in (0, 1, 4):
+        assert np.array_equal(out[k], pri[k])
+    p = out[2] / (pri[2] + pri[3])
+    assert np.allclose(p, 1 / (1 + np.exp((t - tau) / 0.1)), atol=1e-5)
+    assert np.allclose(with_local_split(pri, tau, tau, 0.1)[2], 0.5 * (pri[2] + pri[3]), atol=1e-6)
+    with pytest.raises(ValueError, match="`width` must be > 0"):
+        with_local_split(pri, t, tau, 0.0)
+
+
+def test_fit_layer_split_names_an_empty_band():
+    with pytest.raises(ValueError, match="`band` mask is empty"):
+        fit_layer_split(np.zeros((4, 4, 4)), np.zeros((4, 4, 4)), np.zeros((4, 4, 4), bool), (1, 1, 1), 6.0)
+
+
+def test_layer_split_is_an_mri_option():
+    with pytest.raises(ValueError, match="layer_split"):
+        SegmentConfig(modality="ct", layer_split=True)
+    with pytest.raises(ValueError, match="layer_split"):
+        SegmentConfig(modality="mri", layer_split="yes")
+    assert SegmentConfig(modality="mri").layer_split_on() and not SegmentConfig(modality="ct").layer_split_on()
+
+
+def test_a_first_segmentation_without_brain_is_a_clear_error():
+    from jaxhead.segmentation.segment import _layer_split
+    from jaxhead.volume import Volume
+
+    r, _ = _radius_angle(16, 1.0)
+    lab = np.where(r < 4, Tissue.BRAIN, np.where(r < 6, Tissue.SKULL, np.where(r < 8, Tissue.SCALP, 0)))
+    post = np.stack([(lab == k).astype(np.float32) for k in range(5)])
+    post[1] = 0  # a first EM that found no brain
+    with pytest.raises(ValueError, match="labelled no brain voxel.*layer_split = false"):
+        _layer_split(Volume(lab.astype(np.float64) + 1, np.eye(4)), post, None, None, (post, None, None, None),
+                     SegmentConfig())
