@@ -130,8 +130,9 @@ def with_depth_profile(priors, labels: np.ndarray, voxel_mm, profile: np.ndarray
 #   1. the intensity densities of CSF and skull are the histograms of the band's voxels below and above
 #      the current tau (no parametric form: Rician intensities of dark tissue are skewed in log);
 #   2. per voxel, the log ratio of the two densities, L(y);
-#   3. at every voxel, tau = argmax_k sum_j w_j [t_j < tau_k] L(y_j) over band voxels j, w a Gaussian
-#      window of `sigma_mm` (the split of that neighbourhood of highest likelihood);
+#   3. per block of a coarse grid (about sigma / 2 per side), tau = argmax_k sum_j w_j [t_j < tau_k] L(y_j)
+#      over band voxels j, w a Gaussian window of `sigma_mm` (the split of that neighbourhood of highest
+#      likelihood), interpolated linearly onto the voxels;
 # repeated from tau = 1/2 until (almost) no band voxel changes side. The EM then runs again with each
 # voxel's CSF + skull prior shared by a logistic step at tau (`with_local_split`).
 
@@ -243,6 +244,8 @@ def fit_layer_split(y: np.ndarray, t: np.ndarray, band: np.ndarray, voxel_mm, si
         inner, it = new, it + 1
     summary = dict(iterations=it, changed_fraction=round(changed, 5), csf_fraction=round(float(inner.mean()), 4))
     return upsample(coarse, t.shape, voxel_mm, sigma_mm), summary
+
+
 def with_local_split(priors, t: np.ndarray, tau: np.ndarray, width: float) -> np.ndarray:
     """Priors whose CSF + skull mass at each voxel is shared by a logistic step in depth at the voxel's
     change point: p(CSF) = 1 / (1 + exp((t - tau) / width)); the other classes are unchanged.
