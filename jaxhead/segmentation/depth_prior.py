@@ -109,10 +109,15 @@ def with_depth_profile(priors, labels: np.ndarray, voxel_mm, profile: np.ndarray
     Returns:
         (5, x, y, z) float32 priors.
     """
-    out = np.array(priors, np.float32)
     t = layer_depth(labels == Tissue.BRAIN, labels == Tissue.SCALP, voxel_mm)
     n = len(profile)
-    p = np.interp(t, (np.arange(n) + 0.5) / n, profile).astype(np.float32)
+    return _share_csf_skull(priors, np.interp(t, (np.arange(n) + 0.5) / n, profile))
+
+
+def _share_csf_skull(priors, p) -> np.ndarray:
+    """float32 priors whose CSF + skull mass is split p : 1 - p at each voxel; other classes unchanged."""
+    out = np.array(priors, np.float32)
+    p = np.asarray(p, np.float32)
     both = out[int(Tissue.CSF)] + out[int(Tissue.SKULL)]
     out[int(Tissue.CSF)] = both * p
     out[int(Tissue.SKULL)] = both * (1 - p)
@@ -259,9 +264,4 @@ def with_local_split(priors, t: np.ndarray, tau: np.ndarray, width: float) -> np
     """
     if not width > 0:
         raise ValueError(f"with_local_split: `width` must be > 0, got {width}.")
-    out = np.array(priors, np.float32)
-    p = (0.5 * (1.0 + np.tanh((tau - t) / (2.0 * width)))).astype(np.float32)  # the logistic, overflow-free
-    both = out[int(Tissue.CSF)] + out[int(Tissue.SKULL)]
-    out[int(Tissue.CSF)] = both * p
-    out[int(Tissue.SKULL)] = both * (1 - p)
-    return out
+    return _share_csf_skull(priors, 0.5 * (1.0 + np.tanh((tau - t) / (2.0 * width))))  # the logistic, overflow-free
