@@ -246,6 +246,17 @@ DEFAULT_LAYER_SPLIT = {"mri": True, "ct": False}
 #: (MNI152); width 0.05 and 0.1 within 0.01 of each other (the same file). 6 mm: the middle of the flat range.
 LAYER_SPLIT_MM = 6.0
 LAYER_SPLIT_WIDTH = 0.1
+#: `unmodelled_start`: the first EM's skull/scalp shares where the atlas models no bone (face, neck).
+#: "atlas": the atlas's placeholder soft tissue; "equal": equal shares. Measured at 2 mm on the ANTs
+#: head with the mni152 atlas (skull share of skull + scalp there, truth-weighted by the map: 0.106-0.108;
+#: experiments/results/segmentation_unmodelled_start.md): MRI "atlas" learns 0.017-0.075, always below,
+#: because in T1 bone is as dark as the air/skin partial volume that a scalp Gaussian must model, so
+#: with all the region's prior on scalp that Gaussian also takes the face's bone; "equal" learns
+#: 0.088-0.148, and the 1 mm MRI 8 % skull Dice goes 0.807 -> 0.919. On CT bone is hundreds of HU above
+#: soft tissue: "atlas" learns 0.132-0.142, "equal" over-estimates (0.172-0.184) and costs skull and CSF
+#: Dice (2 mm minimum skull 0.985 -> 0.973, CSF 0.480 -> 0.425).
+DEFAULT_UNMODELLED_START = {"mri": "equal", "ct": "atlas"}
+UNMODELLED_STARTS = ("equal", "atlas")
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -358,6 +369,11 @@ class SegmentConfig:
             (`depth_prior.fit_layer_split`: CSF inside the skull; LAYER_SPLIT_MM), share each voxel's
             CSF + skull prior by a step at it (`depth_prior.with_local_split`) and run the EM again.
             None: the modality default (DEFAULT_LAYER_SPLIT: on for MRI); True with a CT is an error.
+        unmodelled_start: where the atlas models no bone (`Atlas.unmodelled`: the mni152 atlas's face
+            and neck), the skull and scalp shares the first EM starts from, before their proportions
+            are learnt from the scan (`classify`): "equal" (half each) or "atlas" (the atlas's
+            placeholder soft tissue). None: the modality default (DEFAULT_UNMODELLED_START: "equal"
+            for MRI, "atlas" for CT; why: its comment).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
             outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
             MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
@@ -392,6 +408,7 @@ class SegmentConfig:
     noise_floor: bool | None = None
     depth_prior: bool | None = None
     layer_split: bool | None = None
+    unmodelled_start: Literal["equal", "atlas"] | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -475,6 +492,11 @@ class SegmentConfig:
         _check_modality_switch("layer_split", self.layer_split, self.modality, "mri",
                                "(T1: CSF and bone both dark); on CT the bone is bright, so the intensities "
                                "split CSF from skull without it.")
+        if self.unmodelled_start is not None and self.unmodelled_start not in UNMODELLED_STARTS:
+            raise ValueError(
+                f"[segment] `unmodelled_start` must be one of {UNMODELLED_STARTS} (the first EM's skull/scalp "
+                f"shares where the atlas models no bone) or None (modality default), got {self.unmodelled_start!r}."
+            )
         if not isinstance(self.check_registration, (bool, np.bool_)):
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
@@ -491,6 +513,10 @@ class SegmentConfig:
     def layer_split_on(self) -> bool:
         """Whether the CSF/skull split is learnt from the scan (`layer_split`, or the modality default)."""
         return DEFAULT_LAYER_SPLIT[self.modality] if self.layer_split is None else bool(self.layer_split)
+
+    def unmodelled_start_of(self) -> str:
+        """The first EM's shares where the atlas models no bone (`unmodelled_start`, or the modality default)."""
+        return DEFAULT_UNMODELLED_START[self.modality] if self.unmodelled_start is None else self.unmodelled_start
 
     def refine_rounds(self) -> int:
         """Rounds of warp refinement (`refine_warp`, or the modality default)."""
@@ -551,7 +577,8 @@ class Segmentation(eqx.Module):
         atlas_name: the atlas used (`Atlas.name`: "mni152", "phantom", ...), for the run report.
         registration: plausibility figures of the affine registration (`registration_summary`):
             scales, rotation (deg), determinant, NMI after the affine stage; and what the later steps
-            did, each under its own key where it ran: "warp_refinement", "depth_prior" (MRI), "layer_split" (MRI),
+            did, each under its own key where it ran: "unmodelled" (the start and the learnt skull and scalp
+            shares where the atlas models no bone), "warp_refinement", "depth_prior" (MRI), "layer_split" (MRI),
             "bone_majority" and "air_majority" (CT: thresholds and voxels relabelled).
     """
 
@@ -912,7 +939,8 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
         unmodelled: optional (x, y, z) in [0, 1] on the scan's grid: where the atlas does not model
             bone (`Atlas.unmodelled`, resampled; its priors there are placeholder soft tissue). There
             the proportions of UNMODELLED_CLASSES (skull, scalp) are learnt from the scan: a first EM
-            + MRF run with the atlas priors fits the class intensity models; their likelihoods at
+            run with the atlas priors (there, by `cfg.unmodelled_start`, equal shares of those classes
+            or the atlas's placeholder) fits the class intensity models; their likelihoods at
             each voxel of that region give the maximum-likelihood proportions
             (`atlas.regional_proportions`; voxel weight = unmodelled x the classes' share of the
             likelihood); a second run uses priors that share that region in those proportions
@@ -927,7 +955,11 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
 def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     """`classify`, also returning the learnt unmodelled-region proportions (None without) and the EM's
     sample (its data, bias coordinates and grid affine), for `_refine_warp`."""
-    post, res, opts, coords, pi, sample = _classify(volume, priors, cfg, unmodelled)
+    first = priors
+    if unmodelled is not None and cfg.unmodelled_start_of() == "equal":
+        equal = np.full(len(UNMODELLED_CLASSES), 1.0 / len(UNMODELLED_CLASSES))
+        first = with_proportions(np.asarray(priors), unmodelled, equal)
+    post, res, opts, coords, pi, sample = _classify(volume, first, cfg, unmodelled)
     if unmodelled is not None:
         log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
                  [Tissue(c).name.lower() for c in UNMODELLED_CLASSES], np.round(pi, 3).tolist())
@@ -1027,6 +1059,9 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
         check_registration(summary, volume)
     t1 = time.perf_counter()
     post, res, opts, coords, pi, sample = _classify_all(volume, priors, cfg, unmodelled)
+    if pi is not None:
+        summary["unmodelled"] = {"start": cfg.unmodelled_start_of(), **{
+            Tissue(c).name.lower(): round(float(p), 4) for c, p in zip(UNMODELLED_CLASSES, pi)}}
     if cfg.refine_rounds() > 0:
         transform, (post, res, opts, coords, pi, sample), summary["warp_refinement"] = _refine_warp(
             volume, atlas, transform, (post, res, opts, coords, pi, sample), cfg)
