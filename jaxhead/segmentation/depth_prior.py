@@ -193,31 +193,60 @@ def local_change_point(t: np.ndarray, band: np.ndarray, llr: np.ndarray, voxel_m
         (coarse grid) tau in [0, 1] (SPLIT_STEPS candidates; 0 where the window holds no band voxel);
         `upsample` puts it on the voxel grid.
     """
-    taus = np.linspace(0.0, 1.0, SPLIT_STEPS)
+    layout = _change_point_layout(t, band, voxel_mm, sigma_mm)
+    llr = np.asarray(llr, np.float64)
+    return _change_point(layout, llr[np.nonzero(band)] if llr.shape == t.shape else llr)
+
+
+def _change_point_layout(t: np.ndarray, band: np.ndarray, voxel_mm, sigma_mm: float) -> tuple:
+    """What `local_change_point` needs of the band that does not depend on the log ratios: each band
+    voxel's block and first candidate, the coarse grid's shape and the window in blocks (computed once
+    per `fit_layer_split`, not once per iteration)."""
     b = _block(voxel_mm, sigma_mm)
     cshape = tuple(int(-(-n // k)) for n, k in zip(t.shape, b))
     idx = np.nonzero(band)
-    llr = np.asarray(llr, np.float64)
-    w = llr[idx] if llr.shape == t.shape else llr
     cell = np.ravel_multi_index(tuple(i // k for i, k in zip(idx, b)), cshape)
-    k_of = np.searchsorted(taus, t[idx], side="right")  # voxel j counts for every tau_k with k >= k_of[j]
-    sums = np.bincount(cell * (SPLIT_STEPS + 1) + k_of, w, int(np.prod(cshape)) * (SPLIT_STEPS + 1))
+    k_of = np.searchsorted(np.linspace(0.0, 1.0, SPLIT_STEPS), t[idx], side="right")  # counts for tau_k, k >= k_of
+    sig = tuple(sigma_mm / (np.asarray(voxel_mm, np.float64) * b))
+    return cell * (SPLIT_STEPS + 1) + k_of, cshape, sig
+
+
+def _change_point(layout: tuple, w: np.ndarray) -> np.ndarray:
+    """`local_change_point` on a `_change_point_layout`, `w` the band voxels' log ratios."""
+    slot, cshape, sig = layout
+    sums = np.bincount(slot, w, int(np.prod(cshape)) * (SPLIT_STEPS + 1))
     acc = np.cumsum(sums.reshape(cshape + (SPLIT_STEPS + 1,))[..., :SPLIT_STEPS], axis=-1)
-    sig = sigma_mm / (np.asarray(voxel_mm, np.float64) * b)
-    acc = ndimage.gaussian_filter(acc, tuple(sig) + (0.0,), mode="constant")
-    return taus[np.argmax(acc, axis=-1)]
+    acc = ndimage.gaussian_filter(acc, sig + (0.0,), mode="constant")
+    return np.linspace(0.0, 1.0, SPLIT_STEPS)[np.argmax(acc, axis=-1)]
 
 
 def upsample(coarse: np.ndarray, shape, voxel_mm, sigma_mm: float, points=None) -> np.ndarray:
     """`local_change_point`'s coarse grid interpolated (linearly between block centres) onto the voxel
     grid of `shape`, or at the voxel indices `points` (a tuple of index arrays)."""
+    if points is None:  # on the whole grid the interpolation is separable: one small matrix per axis
+        out = np.asarray(coarse, np.float64)
+        for axis, (n, k) in enumerate(zip(shape, _block(voxel_mm, sigma_mm))):
+            out = np.moveaxis(np.tensordot(_linear_weights(n, k, out.shape[axis]), out, axes=(1, axis)), 0, axis)
+        return out
+    return ndimage.map_coordinates(coarse, _coarse_coordinates(points, voxel_mm, sigma_mm), order=1, mode="nearest")
+
+
+def _linear_weights(n: int, k: int, m: int) -> np.ndarray:
+    """(n, m) weights of linear interpolation from m block centres (blocks of k voxels) to n voxels, the
+    ends held constant (map_coordinates' order=1, mode="nearest")."""
+    x = np.clip((np.arange(n, dtype=np.float64) - (k - 1) / 2.0) / k, 0.0, m - 1)
+    i0 = np.minimum(np.floor(x).astype(np.int64), max(m - 2, 0))
+    f = x - i0
+    w = np.zeros((n, m))
+    w[np.arange(n), i0] += 1.0 - f
+    w[np.arange(n), np.minimum(i0 + 1, m - 1)] += f
+    return w
+
+
+def _coarse_coordinates(points, voxel_mm, sigma_mm: float) -> np.ndarray:
+    """(3, n) positions of voxel indices `points` on the coarse grid, whose samples sit at block centres."""
     b = _block(voxel_mm, sigma_mm)
-    full = None
-    if points is None:
-        full = points = np.indices(shape, dtype=np.float64).reshape(3, -1)
-    c = np.stack([(np.asarray(p, np.float64) - (k - 1) / 2.0) / k for p, k in zip(points, b)])
-    out = ndimage.map_coordinates(coarse, c, order=1, mode="nearest")
-    return out if full is None else out.reshape(shape)
+    return np.stack([(np.asarray(p, np.float64) - (k - 1) / 2.0) / k for p, k in zip(points, b)])
 
 
 def fit_layer_split(y: np.ndarray, t: np.ndarray, band: np.ndarray, voxel_mm, sigma_mm: float) -> tuple[np.ndarray, dict]:
@@ -240,11 +269,11 @@ def fit_layer_split(y: np.ndarray, t: np.ndarray, band: np.ndarray, voxel_mm, si
     yb, tb = np.asarray(y, np.float64)[idx], np.asarray(t, np.float64)[idx]
     lo, hi = np.percentile(yb, [0.5, 99.5])
     inner = tb < 0.5
+    layout, at = _change_point_layout(t, band, voxel_mm, sigma_mm), _coarse_coordinates(idx, voxel_mm, sigma_mm)
     changed, it, coarse = 1.0, 0, None
     while changed >= SPLIT_TOL and it < SPLIT_MAX_ITER:
-        llr = density_log_ratio(yb, inner, ~inner, lo, hi)
-        coarse = local_change_point(t, band, llr, voxel_mm, sigma_mm)
-        new = tb < upsample(coarse, t.shape, voxel_mm, sigma_mm, idx)
+        coarse = _change_point(layout, density_log_ratio(yb, inner, ~inner, lo, hi))
+        new = tb < ndimage.map_coordinates(coarse, at, order=1, mode="nearest")  # `upsample` at the band
         changed = float((new != inner).mean())
         inner, it = new, it + 1
     summary = dict(iterations=it, changed_fraction=round(changed, 5), csf_fraction=round(float(inner.mean()), 4))
