@@ -955,27 +955,32 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
 def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     """`classify`, also returning the learnt unmodelled-region proportions (None without) and the EM's
     sample (its data, bias coordinates and grid affine), for `_refine_warp`."""
-    first = priors
-    if unmodelled is not None and cfg.unmodelled_start_of() == "equal":
+    first, equal_start = priors, unmodelled is not None and cfg.unmodelled_start_of() == "equal"
+    if equal_start:
         equal = np.full(len(UNMODELLED_CLASSES), 1.0 / len(UNMODELLED_CLASSES))
         first = with_proportions(np.asarray(priors), unmodelled, equal)
     post, res, opts, coords, pi, sample = _classify(volume, first, cfg, unmodelled)
     if unmodelled is not None:
         log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
                  [Tissue(c).name.lower() for c in UNMODELLED_CLASSES], np.round(pi, 3).tolist())
+        # From equal shares the first fit already models the region's bone, so the second EM starts from
+        # it (fewer iterations); from the placeholder its scalp class has taken that bone, and warm-started
+        # the second EM kept some of it (CT 2 mm, ANTs head: skull 0.985 -> 0.973), so that one starts afresh.
         post, res, opts, coords, _, sample = _classify(volume, with_proportions(np.asarray(priors), unmodelled, pi),
-                                                       cfg)
+                                                       cfg, init=res.params if equal_start else None)
     return post, res, opts, coords, pi, sample
 
 
-def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
+def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=None):
     """`classify` with one set of priors. With `unmodelled` (a first pass), the proportions of
     UNMODELLED_CLASSES in that region instead of the posteriors (None): `atlas.regional_proportions`
     of the class likelihoods at the fitted parameters (posteriors under a uniform prior, no MRF, no
     relaxation) on the EM's sample grid, voxel weight = unmodelled x the classes' share of the
     likelihood. The sample grid, not the full one: the proportions of a region of 10^5-10^6 voxels are
     as well determined from every k-th voxel, and at 1 mm the full grid costs seconds (profiled on
-    the case of benchmarks/segment.py: 4.4 s of 17 s of `classify`)."""
+    the case of benchmarks/segment.py: 4.4 s of 17 s of `classify`). `init`: the EM's starting
+    MixtureParams (a fit on other priors, for the steps that run it again); None: the atlas-weighted
+    quantiles of the scan (`em.fit_mixture`)."""
     dtype = _dtype(cfg)
     vox = voxel_sizes(volume.affine)
     stride = tuple(int(max(1, round(cfg.em_sample_mm / v))) for v in vox)
@@ -997,7 +1002,7 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     coords_full = _coords(shape, padded, 1, dtype)
     coords_s = tuple(c[::s] for c, s in zip(coords_full, stride))
     priors_s = priors[(slice(None),) + sl]
-    res = fit_mixture(y_full[sl], priors_s, opts, None, coords_s, nfloor)
+    res = fit_mixture(y_full[sl], priors_s, opts, init, coords_s, nfloor)
     log.info(
         "segment (%s): EM %d iterations (converged %s), means %s", cfg.modality, int(res.n_iter),
         bool(res.converged), np.round(np.asarray(res.params.means), 3).tolist(),
@@ -1184,7 +1189,8 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     tau, summary = fit_layer_split(y, t, band, vox, LAYER_SPLIT_MM)
     if pi is not None:  # the proportions learnt where the atlas models no bone are kept, not re-learnt
         priors = with_proportions(priors, unmodelled, pi)
-    new = _classify(volume, with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH), cfg)
+    # started from the first EM's fit (only the CSF/skull priors changed): fewer iterations than from quantiles
+    new = _classify(volume, with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH), cfg, init=res.params)
     new = new[:4] + (pi,) + new[5:]
     summary.update(window_mm=LAYER_SPLIT_MM, width=LAYER_SPLIT_WIDTH,
                    relabelled_fraction=round(float((np.argmax(new[0], axis=0) != labels).mean()), 4),
