@@ -1064,12 +1064,12 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
         check_registration(summary, volume)
     t1 = time.perf_counter()
     post, res, opts, coords, pi, sample = _classify_all(volume, priors, cfg, unmodelled)
-    if pi is not None:
-        summary["unmodelled"] = {"start": cfg.unmodelled_start_of(), **{
-            Tissue(c).name.lower(): round(float(p), 4) for c, p in zip(UNMODELLED_CLASSES, pi)}}
     if cfg.refine_rounds() > 0:
         transform, (post, res, opts, coords, pi, sample), summary["warp_refinement"] = _refine_warp(
             volume, atlas, transform, (post, res, opts, coords, pi, sample), cfg)
+    if pi is not None:  # the shares the later steps use (re-learnt by the warp refinement where it ran)
+        summary["unmodelled"] = {"start": cfg.unmodelled_start_of(), **{
+            Tissue(c).name.lower(): round(float(p), 4) for c, p in zip(UNMODELLED_CLASSES, pi)}}
     if cfg.depth_prior_on():
         if cfg.refine_rounds() > 0:  # the priors (and unmodelled map) of the refined warp
             priors = resample(atlas.priors, atlas.affine, transform, volume.shape, volume.affine, dtype=_dtype(cfg))
