@@ -82,6 +82,8 @@ def test_with_proportions_moves_only_the_region_and_keeps_the_sum():
     q32 = with_proportions(p.astype(np.float32), u.astype(np.float32), pi)
     assert q32.dtype == np.float32 and q.dtype == np.float64
     np.testing.assert_allclose(q32, q, rtol=1e-6, atol=1e-7)
+    with pytest.raises(ValueError, match="unmodelled"):  # a map of another grid is an error, not a broadcast
+        with_proportions(p, u[:, :, :2], pi)
 
 
 def test_under_or_beside_against_a_loop():

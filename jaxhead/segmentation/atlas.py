@@ -275,14 +275,21 @@ def regional_proportions(likelihoods, weights, *, tol: float = 1e-7, max_iter: i
 def with_proportions(priors, unmodelled, proportions, classes=UNMODELLED_CLASSES) -> np.ndarray:
     """Priors whose `classes` share their mass s in the unmodelled region as `proportions`:
     p_k <- (1 - u) p_k + u pi_k s (k in classes; other classes and the sum unchanged). Float32 priors
-    stay float32 (a 1 mm head's priors are 140 MB in float32), others are computed in float64."""
+    stay float32 (a 1 mm head's priors are 140 MB in float32), others are computed in float64. Only the
+    voxels with u > 0 are computed (where u = 0 the formula returns p_k exactly): about a third of a
+    head's grid, 0.2 s instead of 0.46 s on a 1 mm head (benchmarks/segment.py's)."""
     dtype = np.float32 if np.asarray(priors).dtype == np.float32 else np.float64
     p = np.array(priors, dtype=dtype, copy=True)
     k = [int(c) for c in classes]
-    u = np.asarray(unmodelled, dtype)
-    s = p[k].sum(0)
+    u = np.asarray(unmodelled, dtype).ravel()
+    flat = p.reshape(len(p), -1)
+    if u.size != flat.shape[1]:
+        raise ValueError(f"with_proportions: `unmodelled` {np.shape(unmodelled)} does not match the priors' grid "
+                         f"{p.shape[1:]}; resample it onto the priors' grid first.")
+    at = np.flatnonzero(u)
+    uk, sub = u[at], flat[k][:, at]
     pi = np.asarray(proportions, dtype)
-    p[k] = (1 - u) * p[k] + u * pi[:, None, None, None] * s
+    flat[np.ix_(k, at)] = (1 - uk) * sub + uk * pi[:, None] * sub.sum(0)
     return p
 
 
