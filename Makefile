@@ -8,10 +8,12 @@ PYTEST_ARGS ?=
 
 .PHONY: demo test test-slow bench install clean
 
-$(STAMP): pyproject.toml
+# constraints.txt: the versions the tests and the README's figures were run with (pyproject.toml keeps
+# the supported ranges), so that a fresh clone installs what was tested.
+$(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test,gmsh]'
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[test,gmsh]'
 	touch $(STAMP)
 
 install: $(STAMP)
