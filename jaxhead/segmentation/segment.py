@@ -959,7 +959,8 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
 
 def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     """`classify`, also returning the learnt unmodelled-region proportions (None without) and the EM's
-    sample (its data, bias coordinates and grid affine), for `_refine_warp`."""
+    sample: its data, bias coordinates and grid affine (for `_refine_warp`), and the EM's data on the
+    full grid (for the steps after the EM that judge intensities by its Gaussians)."""
     first, equal_start = priors, unmodelled is not None and cfg.unmodelled_start_of() == "equal"
     if equal_start:
         equal = np.full(len(UNMODELLED_CLASSES), 1.0 / len(UNMODELLED_CLASSES))
@@ -1028,7 +1029,7 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=
         post = infer_posteriors(y_full, priors, res.params, opts_full, cfg.sweeps, coords_full)
         post = np.asarray(post[crop], dtype=np.float32)
     sample_affine = np.asarray(volume.affine, np.float64) @ np.diag([*stride, 1.0])
-    sample = (y_full[sl], coords_s, sample_affine)
+    sample = (y_full[sl], coords_s, sample_affine, y_full[crop[1:]])
     return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape)), pi, sample
 
 
@@ -1096,8 +1097,7 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
         summary["air_majority"] = {k: round(v, 1) for k, v in info.items()}
         log.info("segment (ct): air majority rule %s", summary["air_majority"])
     if cfg.modality == "ct" and cfg.scalp_outside_skull:
-        denoise = DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
-        y = _em_data(volume, cfg.modality, denoise)  # the EM's data: its Gaussians describe these values
+        y = np.asarray(sample[3], np.float64)  # the EM's data on the full grid: its Gaussians describe these
         if opts.bias_degree > 0:
             y = y - np.asarray(bias_field(res.params.bias, coords, opts.bias_degree), dtype=np.float64)
         post, summary["scalp_outside_skull"] = scalp_outside_skull(post, y, res.params, opts)
@@ -1130,7 +1130,7 @@ def _refine_warp(volume: Volume, atlas: Atlas, transform: BSplineTransform, fit,
     scale = cfg.warp_change_scale()
 
     def make_problem(tr, fit):
-        _, res, opts, _, pi, (y_s, coords_s, sample_affine) = fit
+        _, res, opts, _, pi, (y_s, coords_s, sample_affine, _) = fit
         priors = atlas.priors if pi is None else with_proportions(atlas.priors, atlas.unmodelled, pi)
         return warp_problem(y_s, coords_s, res.params, res.posteriors, opts, priors, atlas.affine, tr,
                             sample_affine, cfg.register.bending_energy, stride, anchor, scale)
