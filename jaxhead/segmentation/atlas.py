@@ -129,10 +129,10 @@ class Atlas(eqx.Module):
         """Write the atlas to an .npz file atomically (`jaxhead.io.atomic_write_path`)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        extra = {} if self.unmodelled is None else {"unmodelled": self.unmodelled.astype(np.float16)}
+        extra = {} if self.unmodelled is None else {"unmodelled": self.unmodelled.astype(STORED_DTYPE)}
         with atomic_write_path(path) as tmp:
             np.savez_compressed(
-                tmp, template=self.template.astype(np.float32), priors=self.priors.astype(np.float16),
+                tmp, template=self.template.astype(np.float32), priors=self.priors.astype(STORED_DTYPE),
                 affine=self.affine, modality=np.array(self.modality), n_subjects=np.array(self.n_subjects),
                 version=np.array(ATLAS_VERSION), name=np.array(self.name), **extra,
             )
@@ -142,11 +142,32 @@ class Atlas(eqx.Module):
     def load(cls, path) -> "Atlas":
         """Read an atlas written by `Atlas.save`."""
         with np.load(path) as z:
-            priors = z["priors"].astype(np.float32)
-            priors /= priors.sum(0, keepdims=True)  # float16 storage: renormalise (|change| < 1e-3)
             name = str(z["name"]) if "name" in z else "custom"
-            u = np.clip(z["unmodelled"].astype(np.float32), 0, 1) if "unmodelled" in z else None
-            return cls(z["template"], priors, z["affine"], str(z["modality"]), int(z["n_subjects"]), name, u)
+            u = _from_stored_unmodelled(z["unmodelled"]) if "unmodelled" in z else None
+            return cls(z["template"], _from_stored_priors(z["priors"]), z["affine"], str(z["modality"]),
+                       int(z["n_subjects"]), name, u)
+
+    def stored(self) -> "Atlas":
+        """This atlas as `save` then `load` return it (template float32, priors and the unmodelled map
+        through float16), without a file; `default_atlas(..., cache=False)` returns this, so that it
+        gives the atlas a cached call gives."""
+        u = None if self.unmodelled is None else _from_stored_unmodelled(self.unmodelled.astype(STORED_DTYPE))
+        return Atlas(self.template.astype(np.float32), _from_stored_priors(self.priors.astype(STORED_DTYPE)),
+                     self.affine, self.modality, self.n_subjects, self.name, u)
+
+
+#: The storage type of an atlas file's priors and unmodelled map (`Atlas.save`).
+STORED_DTYPE = np.float16
+
+
+def _from_stored_priors(p: np.ndarray) -> np.ndarray:
+    """Priors read back from STORED_DTYPE: float32, renormalised (float16 rounding: |change| < 1e-3)."""
+    p = p.astype(np.float32)
+    return p / p.sum(0, keepdims=True)
+
+
+def _from_stored_unmodelled(u: np.ndarray) -> np.ndarray:
+    return np.clip(u.astype(np.float32), 0, 1)
 
 
 def _one_hot(labels: np.ndarray) -> np.ndarray:
@@ -368,7 +389,8 @@ def default_atlas(
     else:
         log.info("building the mni152 %s atlas (MNI152 + fsaverage) at %g mm", modality, voxel_mm)
         out = anatomy_atlas(mni152_anatomy(), modality, voxel_mm=voxel_mm, name="mni152")
-    if cache:
-        out.save(path)
-        log.info("default atlas cached at %s", path)
-    return out
+    if not cache:
+        return out.stored()
+    out.save(path)
+    log.info("default atlas cached at %s", path)
+    return Atlas.load(path)  # what every later call loads, to the bit: a cold cache segments as a warm one
