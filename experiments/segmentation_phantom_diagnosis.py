@@ -125,7 +125,7 @@ def main(argv=None):
     seg_module = sys.modules["jaxhead.segmentation.segment"]  # the package re-exports a function `segment`
     fit = seg_module.fit_mixture
     try:
-        seg_module.fit_mixture = lambda y, pr, op, init=None, co=None: fit(y, pr, op, res_o.params, co)
+        seg_module.fit_mixture = lambda y, pr, op, init=None, co=None, nf=None: fit(y, pr, op, res_o.params, co, nf)
         post_i, res_i, opts, _ = classify(vol, priors, replace(cfg, relax=0.0), None)
     finally:
         seg_module.fit_mixture = fit
