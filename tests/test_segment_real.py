@@ -212,7 +212,7 @@ def test_label_map_on_another_grid_is_an_error(mni):
 @pytest.mark.slow
 @needs_heads
 @pytest.mark.xfail(reason="issue 11's bars are not met yet (skull, CSF, phantom family): see "
-                          "experiments/results/segmentation_heldout.md", strict=False)
+                          "experiments/results/segmentation_heldout.md", strict=True)
 def test_held_out_table_meets_the_bars():
     """The 2 mm table of experiments/segmentation_accuracy.py (minutes)."""
     import importlib.util
