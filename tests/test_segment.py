@@ -81,6 +81,9 @@ def test_segment_mri_phantom_not_in_atlas(atlas_mri):
     assert seg.posteriors.shape == (5, *vol.shape) and seg.posteriors.dtype == np.float32
     np.testing.assert_allclose(seg.posteriors.sum(0), 1.0, atol=1e-5)  # stored as float32
     np.testing.assert_array_equal(seg.labels.labels, seg.posteriors.argmax(0))
+    # the layer split reports the band's CSF share it learnt beside the one the registered atlas expects
+    split = seg.registration["layer_split"]
+    assert 0 < split["csf_fraction"] < 1 and 0 < split["atlas_csf_fraction"] < 1, split
     d = {t: dice(seg.labels.labels == t, truth.labels == t) for t in TISSUES}
     # At 6 mm voxels the 1-5 mm CSF and 4-9 mm skull are mostly partial volume, so only the thick
     # tissues are held to tight bounds here (2 mm figures: experiments/segmentation_accuracy.py).
