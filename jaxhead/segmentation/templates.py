@@ -73,16 +73,23 @@ MNI305_TO_MNI152 = np.array([
 #: evaluation draws from). Ordering WM > GM > CSF, scalp fat brightest, cortical bone darkest, as
 #: in T1-weighted gradient-echo (MPRAGE) images (e.g. Wansapura et al. 1999, JMRI 9:531 for the T1s;
 #: bone and air give almost no signal).
-MRI_CONTRAST = dict(air=0.0, grey_matter=0.65, white_matter=1.0, csf=0.25, skull=0.12, fat=1.1, muscle=0.55)
+MRI_CONTRAST = dict(air=0.0, grey_matter=0.65, white_matter=1.0, csf=0.25, skull=0.12, fat=1.1, muscle=0.55,
+                    diploe=0.45)
 MRI_CONTRAST_RANGE = dict(air=(0.0, 0.0), grey_matter=(0.55, 0.8), white_matter=(1.0, 1.0), csf=(0.1, 0.4),
-                          skull=(0.05, 0.25), fat=(0.8, 1.4), muscle=(0.4, 0.75))
+                          skull=(0.05, 0.25), fat=(0.8, 1.4), muscle=(0.4, 0.75), diploe=(0.3, 0.6))
 #: CT in Hounsfield units: air -1000, fat about -100, CSF 0-15, white matter 20-30, grey matter 35-45,
 #: muscle/skin 35-55, cranial bone several hundred (diploe) to 1500-1900 (compact tables)
 #: (Buzug 2008, Computed Tomography, Springer, Fig. 1.2; Schneider, Bortfeld & Schlegel 2000, Phys.
 #: Med. Biol. 45:459, Table 1). The skull here is one value for the mixture of tables and diploe.
-CT_HU = dict(air=-1000.0, grey_matter=40.0, white_matter=28.0, csf=8.0, skull=1000.0, fat=-100.0, muscle=45.0)
+CT_HU = dict(air=-1000.0, grey_matter=40.0, white_matter=28.0, csf=8.0, skull=1000.0, fat=-100.0, muscle=45.0,
+             diploe=700.0)
 CT_HU_RANGE = dict(air=(-1000.0, -1000.0), grey_matter=(35.0, 45.0), white_matter=(20.0, 30.0), csf=(0.0, 15.0),
-                   skull=(600.0, 1500.0), fat=(-120.0, -60.0), muscle=(35.0, 60.0))
+                   skull=(600.0, 1500.0), fat=(-120.0, -60.0), muscle=(35.0, 60.0), diploe=(550.0, 850.0))
+#: "diploe" (both modalities) is drawn only where an Anatomy has a `diploe` map (`with_diploe`); the
+#: skull's other value is then its compact tables'. The diploe's intensities are the phantom's
+#: (`jaxhead.phantom`: fatty marrow on T1, 0.3-0.6 of white matter; 550-850 HU), as is the table
+#: thickness below (the phantom's outer table 1.2-2.4 mm, inner 0.8-1.6 mm).
+DIPLOE_TABLE_MM = 1.5
 
 
 class Anatomy(eqx.Module):
@@ -99,6 +106,9 @@ class Anatomy(eqx.Module):
             head has no facial bones, skull base below the cranial floor or vertebrae); an atlas
             built from it gives skull and scalp equal priors there (`atlas_priors`). None: the
             anatomy is complete.
+        diploe: optional (x, y, z): the share of each voxel that is diploe (marrow between the skull's
+            tables; part of its skull fraction, 0..fractions[4]); `render` gives it the contrast's
+            "diploe" value (`with_diploe`). None: the skull is one tissue.
     """
 
     fractions: np.ndarray
@@ -106,11 +116,12 @@ class Anatomy(eqx.Module):
     name: str = eqx.field(static=True)
     t1: np.ndarray | None = None
     unmodelled_bone: np.ndarray | None = None
+    diploe: np.ndarray | None = None
 
     def __check_init__(self):
         if self.fractions.ndim != 4 or self.fractions.shape[0] != len(FINE_TISSUES):
             raise ValueError(f"`Anatomy.fractions` must be (6, x, y, z), got {self.fractions.shape}.")
-        for name in ("t1", "unmodelled_bone"):
+        for name in ("t1", "unmodelled_bone", "diploe"):
             a = getattr(self, name)
             if a is not None and a.shape != self.fractions.shape[1:]:
                 raise ValueError(f"`Anatomy.{name}` has shape {a.shape}, fractions {self.fractions.shape[1:]}.")
@@ -120,6 +131,10 @@ class Anatomy(eqx.Module):
                 f"`Anatomy.unmodelled_bone` must lie in [0, 1] (a mask or a fraction), got range "
                 f"{np.nanmin(u):.3g}..{np.nanmax(u):.3g}."
             )
+
+        d = self.diploe
+        if d is not None and not (np.all(np.isfinite(d)) and d.min() >= 0 and np.all(d <= self.fractions[4] + 1e-5)):
+            raise ValueError("`Anatomy.diploe` must lie in [0, the voxel's skull fraction] (it is part of the skull).")
 
     @property
     def shape(self):
@@ -156,7 +171,8 @@ class Anatomy(eqx.Module):
                 return a.reshape(n[0], k[0], n[1], k[1], n[2], k[2]).mean((1, 3, 5))
 
             fr = np.stack([block(a) for a in self.fractions]).astype(np.float32)
-            t1, um = (None if a is None else block(a).astype(np.float32) for a in (self.t1, self.unmodelled_bone))
+            t1, um, dp = (None if a is None else block(a).astype(np.float32)
+                          for a in (self.t1, self.unmodelled_bone, self.diploe))
             aff = self.affine.copy()
             aff[:3, :3] = self.affine[:3, :3] * k
             aff[:3, 3] = self.affine[:3, :3] @ ((k - 1) / 2) + self.affine[:3, 3]
@@ -165,11 +181,34 @@ class Anatomy(eqx.Module):
             idx = np.meshgrid(*[np.arange(m) * s for m, s in zip(n, f)], indexing="ij")
             fr = np.stack([ndimage.map_coordinates(a, idx, order=1, mode="nearest") for a in self.fractions])
             fr = (fr / np.maximum(fr.sum(0, keepdims=True), 1e-12)).astype(np.float32)
-            t1, um = (None if a is None else ndimage.map_coordinates(a, idx, order=1, mode="nearest")
-                      for a in (self.t1, self.unmodelled_bone))
+            t1, um, dp = (None if a is None else ndimage.map_coordinates(a, idx, order=1, mode="nearest")
+                          for a in (self.t1, self.unmodelled_bone, self.diploe))
+            if dp is not None:  # the fractions were renormalised; the diploe stays inside the skull
+                dp = np.clip(dp, 0.0, fr[4]).astype(np.float32)
             aff = self.affine.copy()
             aff[:3, :3] = self.affine[:3, :3] * f
-        return Anatomy(fr, aff, self.name, t1, um)
+        return Anatomy(fr, aff, self.name, t1, um, dp)
+
+
+def with_diploe(anatomy: Anatomy, table_mm: float = DIPLOE_TABLE_MM) -> Anatomy:
+    """The anatomy with a diploe: skull more than `table_mm` from every voxel that is not mostly skull.
+
+    The compact tables are the outer `table_mm` of the skull on both sides; where the skull is thinner than
+    two tables it has no diploe. Computed on the anatomy's own grid (use the source's finest grid, then
+    `resampled`, so the diploe's partial volume is averaged like the fractions).
+
+    Arguments:
+        anatomy: Anatomy (its `diploe` is replaced).
+        table_mm: thickness of each table, mm (> 0).
+    Returns:
+        Anatomy with `diploe` = skull fraction where the depth into the skull exceeds `table_mm`.
+    """
+    if not (np.isfinite(table_mm) and table_mm > 0):
+        raise ValueError(f"`table_mm` must be > 0 (mm), got {table_mm}.")
+    skull = anatomy.fractions[4]
+    depth = ndimage.distance_transform_edt(skull > 0.5, sampling=voxel_sizes(anatomy.affine))
+    diploe = np.where(depth > table_mm, skull, 0.0).astype(np.float32)
+    return Anatomy(anatomy.fractions, anatomy.affine, anatomy.name, anatomy.t1, anatomy.unmodelled_bone, diploe)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -384,6 +423,7 @@ def render(anatomy: Anatomy, modality: str, *, contrast: dict | None = None, noi
         anatomy: Anatomy.
         modality: "mri" (T1-like, white matter = 1) or "ct" (Hounsfield units).
         contrast: tissue intensities (keys of MRI_CONTRAST / CT_HU); missing ones take the defaults.
+            "diploe" is used only where `anatomy.diploe` is given (`with_diploe`).
         noise: MRI: Rician noise sd as a fraction of white matter; CT: Gaussian noise sd in HU.
         bias: MRI only: peak |log| of a smooth multiplicative field (0.2 = up to +-20 %).
         texture: scalp as a smooth mixture of fat and muscle (else their mean).
@@ -399,6 +439,8 @@ def render(anatomy: Anatomy, modality: str, *, contrast: dict | None = None, noi
     scalp = base["fat"] * fat + base["muscle"] * (1 - fat)
     vals = [base["air"], base["grey_matter"], base["white_matter"], base["csf"], base["skull"], scalp]
     img = sum(f * v for f, v in zip(anatomy.fractions.astype(np.float64), vals))
+    if anatomy.diploe is not None:  # that share of the skull is marrow, not table
+        img = img + anatomy.diploe.astype(np.float64) * (base["diploe"] - base["skull"])
     if modality == "mri":
         if anatomy.t1 is not None and noise == 0 and bias == 0:
             # template: the measured T1 (scaled to white matter = the contrast's) where it is given

@@ -1,0 +1,56 @@
+"""A skull with a diploe between compact tables (`templates.with_diploe`) in the synthetic scans."""
+
+import numpy as np
+import pytest
+
+from jaxhead.segmentation.templates import CT_HU, MRI_CONTRAST, Anatomy, render, with_diploe
+
+
+def _shell(r_in: float, r_out: float, vox: float = 0.5, n: int = 72) -> Anatomy:
+    """A ball of brain (white matter) inside a spherical skull shell, in air; binary fractions."""
+    c = (np.arange(n) - (n - 1) / 2) * vox
+    r = np.sqrt(sum(g**2 for g in np.meshgrid(c, c, c, indexing="ij")))
+    fr = np.zeros((6, n, n, n), np.float32)
+    fr[2] = r < r_in
+    fr[4] = (r >= r_in) & (r < r_out)
+    fr[0] = r >= r_out
+    aff = np.diag([vox, vox, vox, 1.0])
+    return Anatomy(fr, aff, "shell")
+
+
+def test_diploe_is_the_skull_deeper_than_a_table():
+    a = with_diploe(_shell(8.0, 15.0), table_mm=1.5)
+    vox3 = 0.5**3
+    # the diploe is the shell 8 + 1.5 .. 15 - 1.5 mm (distance to the nearest non-skull voxel centre,
+    # so within a voxel of the analytic surfaces)
+    lo, hi = 4 / 3 * np.pi * ((13.5 - 0.5) ** 3 - (9.5 + 0.5) ** 3), 4 / 3 * np.pi * ((13.5 + 0.5) ** 3 - (9.5 - 0.5) ** 3)
+    assert lo < a.diploe.sum() * vox3 < hi
+    assert np.all(a.diploe <= a.fractions[4]) and np.all(a.diploe[a.fractions[4] == 0] == 0)
+    # a skull thinner than two tables has none
+    assert with_diploe(_shell(8.0, 10.5), table_mm=1.5).diploe.sum() == 0
+    with pytest.raises(ValueError, match="table_mm"):
+        with_diploe(_shell(8.0, 15.0), table_mm=0.0)
+
+
+@pytest.mark.parametrize("modality, values", [("mri", MRI_CONTRAST), ("ct", CT_HU)])
+def test_render_gives_the_diploe_its_own_value(modality, values):
+    plain = _shell(8.0, 15.0)
+    a = with_diploe(plain)
+    img = render(a, modality, texture=False).data
+    d, tables = a.diploe > 0.99, (a.fractions[4] > 0.99) & (a.diploe == 0)
+    np.testing.assert_allclose(img[d], values["diploe"], atol=1e-9)
+    np.testing.assert_allclose(img[tables], values["skull"], atol=1e-9)
+    # without a diploe map the contrast's "diploe" changes nothing (the evaluation's earlier scans)
+    np.testing.assert_array_equal(render(plain, modality, texture=False, contrast={"diploe": 123.0}).data,
+                                  render(plain, modality, texture=False).data)
+
+
+def test_resampled_diploe_is_averaged_like_the_fractions():
+    a = with_diploe(_shell(8.0, 15.0))
+    b = a.resampled(1.0)  # 2 x 2 x 2 blocks
+    np.testing.assert_allclose(b.diploe.sum() * 8, a.diploe.sum(), rtol=1e-5)
+    assert np.all(b.diploe <= b.fractions[4] + 1e-6)
+    c = a.resampled(0.75)  # interpolated, renormalised fractions: the diploe stays inside the skull
+    assert np.all(c.diploe <= c.fractions[4] + 1e-6)
+    with pytest.raises(ValueError, match="diploe"):
+        Anatomy(a.fractions, a.affine, "bad", diploe=a.fractions[2])  # "diploe" in the brain
