@@ -88,7 +88,9 @@ CT_HU_RANGE = dict(air=(-1000.0, -1000.0), grey_matter=(35.0, 45.0), white_matte
 #: "diploe" (both modalities) is drawn only where an Anatomy has a `diploe` map (`with_diploe`); the
 #: skull's other value is then its compact tables'. The diploe's intensities are the phantom's
 #: (`jaxhead.phantom`: fatty marrow on T1, 0.3-0.6 of white matter; 550-850 HU), as is the table
-#: thickness below (the phantom's outer table 1.2-2.4 mm, inner 0.8-1.6 mm).
+#: thickness below (the phantom's outer table 1.2-2.4 mm, inner 0.8-1.6 mm). On CT the "skull" value
+#: (600-1500 HU, chosen for the mixture) then stands for the tables, below compact bone's 1500-1900 HU, so
+#: a CT with a diploe has less bone contrast than a real one.
 DIPLOE_TABLE_MM = 1.5
 
 
