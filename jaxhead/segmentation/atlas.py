@@ -167,6 +167,7 @@ def _from_stored_priors(p: np.ndarray) -> np.ndarray:
 
 
 def _from_stored_unmodelled(u: np.ndarray) -> np.ndarray:
+    """The unmodelled map read back from STORED_DTYPE: float32, clipped to [0, 1]."""
     return np.clip(u.astype(np.float32), 0, 1)
 
 

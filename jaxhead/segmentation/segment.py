@@ -1204,8 +1204,8 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
         priors = with_proportions(priors, unmodelled, pi)
     # what the registered atlas expects of the band, beside what the split learnt (`csf_fraction`): where the
     # inner table is as dark as CSF the split can run into the bone (results/segmentation_layer_split.md)
-    p_csf = float(np.asarray(priors[Tissue.CSF], np.float64)[band].sum())
-    p_skull = float(np.asarray(priors[Tissue.SKULL], np.float64)[band].sum())
+    p_csf = float(np.asarray(priors[Tissue.CSF])[band].sum(dtype=np.float64))  # the band only, not a float64 copy
+    p_skull = float(np.asarray(priors[Tissue.SKULL])[band].sum(dtype=np.float64))  # of the whole grid
     summary["atlas_csf_fraction"] = round(p_csf / max(p_csf + p_skull, 1e-30), 4)
     # started from the first EM's fit (only the CSF/skull priors changed): fewer iterations than from quantiles
     new = _classify(volume, with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH), cfg, init=res.params)
