@@ -140,11 +140,6 @@ def _share_csf_skull(priors, p) -> np.ndarray:
 #      likelihood), interpolated linearly onto the voxels;
 # repeated from tau = 1/2 until (almost) no band voxel changes side. The EM then runs again with each
 # voxel's CSF + skull prior shared by a logistic step at tau (`with_local_split`).
-# Step 3 can add a prior's log odds to L (`prior_log_odds`; `segment` passes the EM's relaxed prior at
-# the first fit): the split of highest posterior rather than likelihood. Needed where the skull is not
-# one dark layer: with a diploe (marrow, brighter than CSF on T1) between compact tables as dark as CSF,
-# the likelihood alone puts the change point at the diploe, the inner table labelled CSF
-# (experiments/results/segmentation_layer_split.md, session 21).
 
 #: candidate change points tau in [0, 1]
 SPLIT_STEPS = 21
@@ -254,8 +249,7 @@ def _coarse_coordinates(points, voxel_mm, sigma_mm: float) -> np.ndarray:
     return np.stack([(np.asarray(p, np.float64) - (k - 1) / 2.0) / k for p, k in zip(points, b)])
 
 
-def fit_layer_split(y: np.ndarray, t: np.ndarray, band: np.ndarray, voxel_mm, sigma_mm: float,
-                    prior_log_odds=None) -> tuple[np.ndarray, dict]:
+def fit_layer_split(y: np.ndarray, t: np.ndarray, band: np.ndarray, voxel_mm, sigma_mm: float) -> tuple[np.ndarray, dict]:
     """The band's CSF/skull change point in depth, learnt from its intensities (the comment above).
 
     Arguments:
@@ -264,10 +258,6 @@ def fit_layer_split(y: np.ndarray, t: np.ndarray, band: np.ndarray, voxel_mm, si
         band: (x, y, z) boolean: the voxels a first segmentation labelled CSF or skull.
         voxel_mm: voxel sizes (3,), mm.
         sigma_mm: the neighbourhood (Gaussian window sd, mm) that shares one change point.
-        prior_log_odds: None (the split of highest likelihood), or log p(CSF) - log p(skull) of a
-            prior, per band voxel ((n_band,) in `np.nonzero(band)` order, or (x, y, z)), added to the
-            log ratios: the split of highest posterior. Where the intensities cannot tell the two sides
-            apart the prior decides.
     Returns:
         (tau (x, y, z) in [0, 1], summary: iterations, fraction of the band that changed side in the
         last one, the band's CSF fraction).
@@ -276,21 +266,13 @@ def fit_layer_split(y: np.ndarray, t: np.ndarray, band: np.ndarray, voxel_mm, si
     if not band.any():
         raise ValueError("fit_layer_split: the `band` mask is empty (no CSF or skull voxel to split).")
     idx = np.nonzero(band)
-    if prior_log_odds is not None:
-        prior_log_odds = np.asarray(prior_log_odds, np.float64)
-        if prior_log_odds.shape == np.shape(t):
-            prior_log_odds = prior_log_odds[idx]
-        if prior_log_odds.shape != (len(idx[0]),) or not np.isfinite(prior_log_odds).all():
-            raise ValueError(f"fit_layer_split: `prior_log_odds` must be finite, one per band voxel "
-                             f"({len(idx[0])},) or on the grid {np.shape(t)}; got shape {prior_log_odds.shape}.")
     yb, tb = np.asarray(y, np.float64)[idx], np.asarray(t, np.float64)[idx]
     lo, hi = np.percentile(yb, [0.5, 99.5])
     inner = tb < 0.5
     layout, at = _change_point_layout(t, band, voxel_mm, sigma_mm), _coarse_coordinates(idx, voxel_mm, sigma_mm)
     changed, it, coarse = 1.0, 0, None
     while changed >= SPLIT_TOL and it < SPLIT_MAX_ITER:
-        llr = density_log_ratio(yb, inner, ~inner, lo, hi)
-        coarse = _change_point(layout, llr if prior_log_odds is None else llr + prior_log_odds)
+        coarse = _change_point(layout, density_log_ratio(yb, inner, ~inner, lo, hi))
         new = tb < ndimage.map_coordinates(coarse, at, order=1, mode="nearest")  # `upsample` at the band
         changed = float((new != inner).mean())
         inner, it = new, it + 1

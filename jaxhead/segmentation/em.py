@@ -660,23 +660,6 @@ def _normalise_prior(priors, floor):
 # ----------------------------------------------------------------------------------------------
 
 
-def relaxed_prior(priors, posteriors, opts: EMOptions) -> jax.Array:
-    """The prior of the EM's relaxed phase: the atlas `priors` (floored by `opts.prior_floor` and
-    normalised, as `fit_mixture` uses them) relaxed towards the Gaussian-smoothed `posteriors`,
-    (1 - a) atlas + a normalised(G_sigma * q) with a = `opts.relax`, sigma = `opts.relax_sigma_vox`
-    (Cardoso et al. 2011).
-
-    Arguments:
-        priors, posteriors: (K, x, y, z) class maps on the same grid.
-        opts: EMOptions.
-    Returns:
-        (K, x, y, z) array, summing to 1 over K.
-    """
-    atlas = _normalise_prior(jnp.asarray(priors), opts.prior_floor)
-    post = jnp.asarray(posteriors, atlas[0].dtype)
-    return jnp.stack(_relaxed_prior(atlas, [post[k] for k in range(post.shape[0])], opts.relax, opts.relax_sigma_vox))
-
-
 @functools.partial(jax.jit, static_argnames=("opts",))
 def fit_mixture(y, priors, opts: EMOptions, init: MixtureParams | None = None, coords=None,
                 noise_floor: NoiseFloor | None = None) -> EMResult:

@@ -71,7 +71,7 @@ from ..volume import LabelMap, Volume, voxel_sizes
 from .atlas import N_CLASSES, Atlas, check_atlas_kind, default_atlas, regional_proportions, with_proportions
 from .depth_prior import csf_depth_profile, fit_layer_split, layer_depth, with_depth_profile, with_local_split
 from .denoise import diffuse, log_noise_table, noise_sd, rayleigh_noise_sd
-from .em import EMOptions, MixtureParams, NoiseFloor, bias_field, fit_mixture, infer_posteriors, relaxed_prior
+from .em import EMOptions, MixtureParams, NoiseFloor, bias_field, fit_mixture, infer_posteriors
 from .register import (
     AffineTransform, BSplineTransform, RegisterConfig, Transform, _level_factors, centre_of_mass, downsample, nmi,
     register, resample,
@@ -1199,16 +1199,9 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     if not band.any():
         raise ValueError("[segment] layer_split: the first EM labelled no CSF and no skull voxel, so there is no "
                          "band to split; check the scan and `modality`, or set layer_split = false.")
+    tau, summary = fit_layer_split(y, t, band, vox, LAYER_SPLIT_MM)
     if pi is not None:  # the proportions learnt where the atlas models no bone are kept, not re-learnt
         priors = with_proportions(priors, unmodelled, pi)
-    # the change point's prior: the one the EM's relaxed phase uses, at the first EM's posterior (where
-    # the intensities cannot tell CSF from the skull beside it, e.g. an inner table as dark as CSF next
-    # to a brighter diploe, it decides, as in the EM)
-    prior = np.asarray(relaxed_prior(priors, post, cfg.em_options(cfg.relax_sigma_mm / float(np.mean(vox)))))
-    tiny = np.finfo(prior.dtype).tiny
-    log_odds = (np.log(np.maximum(prior[Tissue.CSF][band], tiny), dtype=np.float64)
-                - np.log(np.maximum(prior[Tissue.SKULL][band], tiny), dtype=np.float64))
-    tau, summary = fit_layer_split(y, t, band, vox, LAYER_SPLIT_MM, prior_log_odds=log_odds)
     # what the registered atlas expects of the band, beside what the split learnt (`csf_fraction`): where the
     # inner table is as dark as CSF the split can run into the bone (results/segmentation_layer_split.md)
     p_csf = float(np.asarray(priors[Tissue.CSF])[band].sum(dtype=np.float64))  # the band only, not a float64 copy
