@@ -39,9 +39,16 @@ def test_render_gives_the_diploe_its_own_value(modality, values):
     img = render(a, modality, texture=False).data
     d, tables = a.diploe > 0.99, (a.fractions[4] > 0.99) & (a.diploe == 0)
     np.testing.assert_allclose(img[d], values["diploe"], atol=1e-9)
-    np.testing.assert_allclose(img[tables], values["skull"], atol=1e-9)
-    # without a diploe map the contrast's "diploe" changes nothing (the evaluation's earlier scans)
-    np.testing.assert_array_equal(render(plain, modality, texture=False, contrast={"diploe": 123.0}).data,
+    table = values.get("table", values["skull"])  # CT: compact bone; MRI: the skull's own value
+    np.testing.assert_allclose(img[tables], table, atol=1e-9)
+    # a partial-volume voxel: each fraction at its tissue's value, the skull's split marrow : table
+    f, dip = a.fractions.astype(np.float64), a.diploe.astype(np.float64)
+    scalp = 0.5 * (values["fat"] + values["muscle"])
+    want = (f[0] * values["air"] + f[1] * values["grey_matter"] + f[2] * values["white_matter"] + f[3] * values["csf"]
+            + dip * values["diploe"] + (f[4] - dip) * table + f[5] * scalp)
+    np.testing.assert_allclose(img, want, atol=1e-9)
+    # without a diploe map the contrast's "diploe" and "table" change nothing (the evaluation's earlier scans)
+    np.testing.assert_array_equal(render(plain, modality, texture=False, contrast={"diploe": 123.0, "table": 7.0}).data,
                                   render(plain, modality, texture=False).data)
 
 

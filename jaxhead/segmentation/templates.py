@@ -82,15 +82,16 @@ MRI_CONTRAST_RANGE = dict(air=(0.0, 0.0), grey_matter=(0.55, 0.8), white_matter=
 #: (Buzug 2008, Computed Tomography, Springer, Fig. 1.2; Schneider, Bortfeld & Schlegel 2000, Phys.
 #: Med. Biol. 45:459, Table 1). The skull here is one value for the mixture of tables and diploe.
 CT_HU = dict(air=-1000.0, grey_matter=40.0, white_matter=28.0, csf=8.0, skull=1000.0, fat=-100.0, muscle=45.0,
-             diploe=700.0)
+             diploe=700.0, table=1700.0)
 CT_HU_RANGE = dict(air=(-1000.0, -1000.0), grey_matter=(35.0, 45.0), white_matter=(20.0, 30.0), csf=(0.0, 15.0),
-                   skull=(600.0, 1500.0), fat=(-120.0, -60.0), muscle=(35.0, 60.0), diploe=(550.0, 850.0))
-#: "diploe" (both modalities) is drawn only where an Anatomy has a `diploe` map (`with_diploe`); the
-#: skull's other value is then its compact tables'. The diploe's intensities are the phantom's
-#: (`jaxhead.phantom`: fatty marrow on T1, 0.3-0.6 of white matter; 550-850 HU), as is the table
-#: thickness below (the phantom's outer table 1.2-2.4 mm, inner 0.8-1.6 mm). On CT the "skull" value
-#: (600-1500 HU, chosen for the mixture) then stands for the tables, below compact bone's 1500-1900 HU, so
-#: a CT with a diploe has less bone contrast than a real one.
+                   skull=(600.0, 1500.0), fat=(-120.0, -60.0), muscle=(35.0, 60.0), diploe=(550.0, 850.0),
+                   table=(1500.0, 1900.0))
+#: "diploe" (both modalities) and "table" (CT) are drawn only where an Anatomy has a `diploe` map
+#: (`with_diploe`): the skull is then marrow ("diploe") between compact tables (CT: "table", compact
+#: bone's 1500-1900 HU, in place of the mixture's "skull"; MRI: "skull", already compact bone's). The
+#: diploe's intensities are the phantom's (`jaxhead.phantom`: fatty marrow on T1, 0.3-0.6 of white
+#: matter; 550-850 HU), as is the table thickness below (the phantom's outer table 1.2-2.4 mm, inner
+#: 0.8-1.6 mm). Both keys come last in the ranges, so `random_contrast` draws the other tissues as before.
 DIPLOE_TABLE_MM = 1.5
 
 
@@ -425,7 +426,7 @@ def render(anatomy: Anatomy, modality: str, *, contrast: dict | None = None, noi
         anatomy: Anatomy.
         modality: "mri" (T1-like, white matter = 1) or "ct" (Hounsfield units).
         contrast: tissue intensities (keys of MRI_CONTRAST / CT_HU); missing ones take the defaults.
-            "diploe" is used only where `anatomy.diploe` is given (`with_diploe`).
+            "diploe" and "table" (CT) are used only where `anatomy.diploe` is given (`with_diploe`).
         noise: MRI: Rician noise sd as a fraction of white matter; CT: Gaussian noise sd in HU.
         bias: MRI only: peak |log| of a smooth multiplicative field (0.2 = up to +-20 %).
         texture: scalp as a smooth mixture of fat and muscle (else their mean).
@@ -441,8 +442,10 @@ def render(anatomy: Anatomy, modality: str, *, contrast: dict | None = None, noi
     scalp = base["fat"] * fat + base["muscle"] * (1 - fat)
     vals = [base["air"], base["grey_matter"], base["white_matter"], base["csf"], base["skull"], scalp]
     img = sum(f * v for f, v in zip(anatomy.fractions.astype(np.float64), vals))
-    if anatomy.diploe is not None:  # that share of the skull is marrow, not table
-        img = img + anatomy.diploe.astype(np.float64) * (base["diploe"] - base["skull"])
+    if anatomy.diploe is not None:  # that share of the skull is marrow, the rest compact table
+        dip = anatomy.diploe.astype(np.float64)
+        table = base.get("table", base["skull"])  # CT: compact bone; MRI: the skull's value is compact bone's
+        img = img + dip * (base["diploe"] - base["skull"]) + (anatomy.fractions[4] - dip) * (table - base["skull"])
     if modality == "mri":
         if anatomy.t1 is not None and noise == 0 and bias == 0:
             # template: the measured T1 (scaled to white matter = the contrast's) where it is given
