@@ -129,7 +129,7 @@ def test_segment_config_csf_below_brain():
     lo, hi, margin = opts.mean_order[0]
     assert (cc[lo], cc[hi], margin) == (int(Tissue.CSF), int(Tissue.BRAIN), CSF_BRAIN_MARGIN_HU)
     assert lo == cc.index(int(Tissue.CSF)) and hi == cc.index(int(Tissue.BRAIN))  # the first of each class
-    assert SegmentConfig(modality="ct", csf_below_brain=False).em_options(1.0).mean_order == ()
+    assert SegmentConfig(modality="ct", csf_below_brain=False, csf_mix_below_bone=False).em_options(1.0).mean_order == ()
     assert SegmentConfig(modality="mri").em_options(1.0).mean_order == ()
     pv = SegmentConfig(modality="ct", partial_volume=True).em_options(1.0)
     assert all(pv.is_free(j) for j in pv.mean_order[0][:2])
@@ -137,6 +137,23 @@ def test_segment_config_csf_below_brain():
         SegmentConfig(modality="mri", csf_below_brain=True)
     with pytest.raises(ValueError, match="csf_below_brain"):
         SegmentConfig(modality="ct", csf_below_brain="yes")
+
+
+def test_segment_config_csf_mix_below_bone():
+    """CT by default: the CSF class's second Gaussian (its bone mixture) at or below the skull's first."""
+    opts = SegmentConfig(modality="ct").em_options(1.0)
+    cc = opts.component_class
+    lo, hi, margin = opts.mean_order[1]
+    assert (cc[lo], cc[hi], margin) == (int(Tissue.CSF), int(Tissue.SKULL), 0.0)
+    assert lo == cc.index(int(Tissue.CSF)) + 1 and hi == cc.index(int(Tissue.SKULL))
+    off = SegmentConfig(modality="ct", csf_mix_below_bone=False).em_options(1.0).mean_order
+    assert off == opts.mean_order[:1]
+    # one CSF Gaussian (partial-volume model, or `gaussians`): the default has nothing to order; asking is an error
+    assert len(SegmentConfig(modality="ct", partial_volume=True).em_options(1.0).mean_order) == 1
+    with pytest.raises(ValueError, match="csf_mix_below_bone"):
+        SegmentConfig(modality="ct", gaussians={"csf": 1}, csf_mix_below_bone=True)
+    with pytest.raises(ValueError, match="csf_mix_below_bone"):
+        SegmentConfig(modality="mri", csf_mix_below_bone=True)
 
 
 @pytest.mark.parametrize(

@@ -23,7 +23,8 @@ What the intensity model assumes (and what it learns from the scan):
 
 - Each class is a mixture of a few Gaussians (DEFAULT_GAUSSIANS) whose means, variances and weights
   are all fitted to this scan; nothing about the tissues' contrast is fixed, except on CT the order
-  of CSF below brain by CSF_BRAIN_MARGIN_HU (physical Hounsfield units; `csf_below_brain`). The start is the
+  of CSF below brain by CSF_BRAIN_MARGIN_HU and of CSF's bone mixture below bone (physical Hounsfield
+  units; `csf_below_brain`, `csf_mix_below_bone`). The start is the
   registered atlas priors' weighted intensity quantiles of the scan itself (em._init_params), so an
   MRI with another contrast ratio, a dark or a fat-bright scalp, or a CT with another scanner's HU
   calibration starts from its own intensities, not the atlas template's.
@@ -147,6 +148,19 @@ CSF_BRAIN_MARGIN_HU = 5.0
 #: Whether that order is imposed by default (MRI: never; intensities are relative and the order of
 #: CSF and brain depends on the weighting).
 DEFAULT_CSF_BELOW_BRAIN = {"mri": False, "ct": True}
+#: CT: the M-step keeps the CSF class's second Gaussian (its mixture with bone: free Gaussians start at
+#: the class's intensity quantiles, so the first is pure CSF, the second the brighter partial volume)
+#: at or below the skull class's first (lowest-starting) Gaussian (em.ordered_means;
+#: `csf_mix_below_bone`). A voxel the majority rule calls CSF holds less bone than CSF, so its HU lies
+#: below the midpoint of CSF and bone; a CSF Gaussian above any of bone's is bone. What the order rules
+#: out: on a skull of compact tables (1500-1900 HU) around a diploe (550-850 HU), the CSF class's
+#: second Gaussian took the whole diploe as its own and the skull's first sat on CSF: the MNI152 head's
+#: CT at 1 mm, held out, CSF 0.000-0.211 and skull 0.39-0.63 on three of its four scans
+#: (experiments/results/segmentation_diploe.md, session 21). Measured (held out, minimum Dice CSF): with tables and diploe, 1 mm, MNI152 0.000 -> 0.797-0.850
+#: (skull 1.000), ANTs and phantom within 0.02; 2 mm MNI152 20 HU 0.644 -> 0.651; without a diploe,
+#: 2 mm, ANTs 20 HU 0.480 -> 0.421, MNI152 5 HU 0.813 -> 0.750 and the phantom 20 HU 0.663 -> 0.617
+#: (a bar lost: its CSF/bone partial volume sits above the skull's lowest Gaussian).
+DEFAULT_CSF_MIX_BELOW_BONE = {"mri": False, "ct": True}
 #: MRI: the M-step keeps the skull class's second Gaussian (the diploe's: free Gaussians start at the
 #: class's intensity quantiles, so the first is the dark compact tables, the second the brighter
 #: marrow) at least DIPLOE_ABOVE_CSF_LOG above the CSF class's first ("pure", darkest) Gaussian, in
@@ -333,6 +347,9 @@ class SegmentConfig:
         csf_below_brain: CT: keep the CSF class's first Gaussian mean CSF_BRAIN_MARGIN_HU below the
             brain class's first Gaussian mean (literature Hounsfield units; em.ordered_means). None: the
             modality default (DEFAULT_CSF_BELOW_BRAIN); True with an MRI is an error.
+        csf_mix_below_bone: CT: keep the CSF class's second Gaussian mean (its mixture with bone) at or
+            below the skull class's first (em.ordered_means; DEFAULT_CSF_MIX_BELOW_BONE). Needs >= 2 free
+            CSF Gaussians. None: the modality default (on for CT); True with an MRI is an error.
         diploe_above_csf: MRI: keep the skull class's second Gaussian mean DIPLOE_ABOVE_CSF_LOG (log
             intensity) above the CSF class's first Gaussian mean (T1 physics: fatty marrow brighter than
             CSF; em.ordered_means). Needs >= 2 free skull Gaussians. None: the modality default
@@ -406,6 +423,7 @@ class SegmentConfig:
     weight_prior: float | None = None
     csf_below_brain: bool | None = None
     variance_prior: float | None = None
+    csf_mix_below_bone: bool | None = None
     diploe_above_csf: bool | None = None
     refine_warp: int | None = None
     warp_change_mm: float | None = None
@@ -453,6 +471,14 @@ class SegmentConfig:
         _check_modality_switch("csf_below_brain", self.csf_below_brain, self.modality, "ct",
                                "(Hounsfield units); MRI intensities are relative and their CSF/brain order "
                                "depends on the weighting.")
+        _check_modality_switch("csf_mix_below_bone", self.csf_mix_below_bone, self.modality, "ct",
+                               "(Hounsfield units); on MRI bone is dark and CSF's mixtures with it are darker than CSF.")
+        if self.csf_mix_below_bone and self.gaussians_per_class()[int(Tissue.CSF)] < 2:
+            raise ValueError(
+                f"[segment] `csf_mix_below_bone=True` orders the CSF class's second Gaussian, but the CSF class has "
+                f"{self.gaussians_per_class()[int(Tissue.CSF)]} free Gaussian(s) (`gaussians`, `partial_volume`); "
+                "give it >= 2 or leave the order off."
+            )
         _check_modality_switch("diploe_above_csf", self.diploe_above_csf, self.modality, "mri",
                                "(a T1-weighted log intensity order); in CT both skull Gaussians lie hundreds of "
                                "HU above CSF.")
@@ -551,6 +577,9 @@ class SegmentConfig:
         eta = DEFAULT_WEIGHT_PRIOR[self.modality] if self.weight_prior is None else self.weight_prior
         below = DEFAULT_CSF_BELOW_BRAIN[self.modality] if self.csf_below_brain is None else self.csf_below_brain
         order = ((cc.index(int(Tissue.CSF)), cc.index(int(Tissue.BRAIN)), CSF_BRAIN_MARGIN_HU),) if below else ()
+        mix = DEFAULT_CSF_MIX_BELOW_BONE[self.modality] if self.csf_mix_below_bone is None else self.csf_mix_below_bone
+        if mix and counts[int(Tissue.CSF)] >= 2:  # the default is skipped where the CSF class has one Gaussian
+            order += ((cc.index(int(Tissue.CSF)) + 1, cc.index(int(Tissue.SKULL)), 0.0),)
         diploe = DEFAULT_DIPLOE_ABOVE_CSF[self.modality] if self.diploe_above_csf is None else self.diploe_above_csf
         if diploe:  # the skull's free Gaussians come first in its group, tables then diploe
             order += ((cc.index(int(Tissue.CSF)), cc.index(int(Tissue.SKULL)) + 1, DIPLOE_ABOVE_CSF_LOG),)
