@@ -473,21 +473,11 @@ class SegmentConfig:
                                "depends on the weighting.")
         _check_modality_switch("csf_mix_below_bone", self.csf_mix_below_bone, self.modality, "ct",
                                "(Hounsfield units); on MRI bone is dark and CSF's mixtures with it are darker than CSF.")
-        if self.csf_mix_below_bone and self.gaussians_per_class()[int(Tissue.CSF)] < 2:
-            raise ValueError(
-                f"[segment] `csf_mix_below_bone=True` orders the CSF class's second Gaussian, but the CSF class has "
-                f"{self.gaussians_per_class()[int(Tissue.CSF)]} free Gaussian(s) (`gaussians`, `partial_volume`); "
-                "give it >= 2 or leave the order off."
-            )
+        self._check_second_gaussian("csf_mix_below_bone", self.csf_mix_below_bone, Tissue.CSF, "CSF, its bone mixture")
         _check_modality_switch("diploe_above_csf", self.diploe_above_csf, self.modality, "mri",
                                "(a T1-weighted log intensity order); in CT both skull Gaussians lie hundreds of "
                                "HU above CSF.")
-        if self.diploe_above_csf and self.gaussians_per_class()[int(Tissue.SKULL)] < 2:
-            raise ValueError(
-                f"[segment] `diploe_above_csf=True` orders the skull class's second Gaussian, but `gaussians` gives "
-                f"skull {self.gaussians_per_class()[int(Tissue.SKULL)]}; give it >= 2 (tables, diploe) or leave "
-                "the order off."
-            )
+        self._check_second_gaussian("diploe_above_csf", self.diploe_above_csf, Tissue.SKULL, "tables, diploe")
         if self.variance_prior is not None and not (
                 isinstance(self.variance_prior, (int, float)) and not isinstance(self.variance_prior, bool)
                 and self.variance_prior >= 0):
@@ -531,6 +521,16 @@ class SegmentConfig:
             raise ValueError(f"[segment] `check_registration` must be true or false, got {self.check_registration!r}.")
         if not self.atlas_voxel_mm > 0 or self.atlas_subjects < 1:
             raise ValueError("[segment] `atlas_voxel_mm` must be > 0 and `atlas_subjects` >= 1.")
+
+    def _check_second_gaussian(self, name: str, on, cls: Tissue, what: str) -> None:
+        """An order on class `cls`'s second Gaussian needs two free ones (`gaussians`, `partial_volume`)."""
+        n = self.gaussians_per_class()[int(cls)]
+        label = "CSF" if cls == Tissue.CSF else cls.name.lower()
+        if on and n < 2:
+            raise ValueError(
+                f"[segment] `{name}=True` orders the {label} class's second Gaussian, but it has {n} free "
+                f"Gaussian(s) (`gaussians`, `partial_volume`); give it >= 2 ({what}) or leave the order off."
+            )
 
     def warp_change_scale(self) -> float:
         """Scale (mm) of the warp refinement's displacement-change penalty (`warp_change_mm`, or the default)."""
