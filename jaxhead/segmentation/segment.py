@@ -156,10 +156,10 @@ DEFAULT_CSF_BELOW_BRAIN = {"mri": False, "ct": True}
 #: out: on a skull of compact tables (1500-1900 HU) around a diploe (550-850 HU), the CSF class's
 #: second Gaussian took the whole diploe as its own and the skull's first sat on CSF: the MNI152 head's
 #: CT at 1 mm, held out, CSF 0.000-0.211 and skull 0.39-0.63 on three of its four scans
-#: (experiments/results/segmentation_diploe.md, session 21). Measured (held out, minimum Dice CSF): with tables and diploe, 1 mm, MNI152 0.000 -> 0.797-0.850
-#: (skull 1.000), ANTs and phantom within 0.02; 2 mm MNI152 20 HU 0.644 -> 0.651; without a diploe,
-#: 2 mm, ANTs 20 HU 0.480 -> 0.421, MNI152 5 HU 0.813 -> 0.750 and the phantom 20 HU 0.663 -> 0.617
-#: (a bar lost: its CSF/bone partial volume sits above the skull's lowest Gaussian).
+#: (experiments/results/segmentation_diploe.md, session 21). Measured (held out, minimum Dice CSF):
+#: with tables and diploe, 1 mm, MNI152 0.000 -> 0.797-0.850 (skull 1.000), ANTs and phantom within
+#: 0.02; 2 mm MNI152 20 HU 0.644 -> 0.651; without a diploe, 2 mm, ANTs 20 HU 0.480 -> 0.421, MNI152
+#: 5 HU 0.813 -> 0.750 and the phantom 20 HU 0.663 -> 0.617 (a bar lost: its CSF/bone partial volume sits above the skull's lowest Gaussian).
 DEFAULT_CSF_MIX_BELOW_BONE = {"mri": False, "ct": True}
 #: MRI: the M-step keeps the skull class's second Gaussian (the diploe's: free Gaussians start at the
 #: class's intensity quantiles, so the first is the dark compact tables, the second the brighter
@@ -472,7 +472,8 @@ class SegmentConfig:
                                "(Hounsfield units); MRI intensities are relative and their CSF/brain order "
                                "depends on the weighting.")
         _check_modality_switch("csf_mix_below_bone", self.csf_mix_below_bone, self.modality, "ct",
-                               "(Hounsfield units); on MRI bone is dark and CSF's mixtures with it are darker than CSF.")
+                               "(Hounsfield units); on MRI bone is dark and CSF's mixtures with it are darker "
+                               "than CSF.")
         self._check_second_gaussian("csf_mix_below_bone", self.csf_mix_below_bone, Tissue.CSF, "CSF, its bone mixture")
         _check_modality_switch("diploe_above_csf", self.diploe_above_csf, self.modality, "mri",
                                "(a T1-weighted log intensity order); in CT both skull Gaussians lie hundreds of "
