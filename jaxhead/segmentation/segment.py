@@ -159,7 +159,8 @@ DEFAULT_CSF_BELOW_BRAIN = {"mri": False, "ct": True}
 #: (experiments/results/segmentation_diploe.md, session 21). Measured (held out, minimum Dice CSF):
 #: with tables and diploe, 1 mm, MNI152 0.000 -> 0.797-0.850 (skull 1.000), ANTs and phantom within
 #: 0.02; 2 mm MNI152 20 HU 0.644 -> 0.651; without a diploe, 2 mm, ANTs 20 HU 0.480 -> 0.421, MNI152
-#: 5 HU 0.813 -> 0.750 and the phantom 20 HU 0.663 -> 0.617 (a bar lost: its CSF/bone partial volume sits above the skull's lowest Gaussian).
+#: 5 HU 0.813 -> 0.750 and the phantom 20 HU 0.663 -> 0.617 (a bar lost: its CSF/bone partial volume
+#: sits above the skull's lowest Gaussian).
 DEFAULT_CSF_MIX_BELOW_BONE = {"mri": False, "ct": True}
 #: MRI: the M-step keeps the skull class's second Gaussian (the diploe's: free Gaussians start at the
 #: class's intensity quantiles, so the first is the dark compact tables, the second the brighter
