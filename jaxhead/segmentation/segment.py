@@ -1302,7 +1302,7 @@ def bone_majority(hu: np.ndarray, posteriors: np.ndarray) -> tuple[np.ndarray, d
     sk, br = lab == int(Tissue.SKULL), lab == int(Tissue.BRAIN)
     if not sk.any() or not br.any():
         return posteriors, {}
-    b, s = float(np.percentile(hu[sk], 90.0)), float(np.median(hu[br]))  # EXPERIMENT: the tables' HU
+    b, s = float(np.median(hu[sk])), float(np.median(hu[br]))
     if not b > s:  # no bright bone: not a CT the rule describes
         return posteriors, {}
     t = 0.5 * (b + s)
