@@ -43,7 +43,8 @@ import numpy as np  # noqa: E402
 from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.segmentation import SegmentConfig, default_atlas, segment_reported  # noqa: E402
 from jaxhead.segmentation.atlas import anatomy_atlas  # noqa: E402
-from jaxhead.segmentation.templates import ants_anatomy, mni152_anatomy, random_contrast, render, with_diploe  # noqa: E402
+from jaxhead.segmentation.templates import (  # noqa: E402
+    ants_anatomy, fatty_marrow, mni152_anatomy, random_contrast, render, with_diploe)
 from jaxhead.tissue import TISSUES  # noqa: E402
 
 log = logging.getLogger("segmentation_accuracy")
@@ -67,7 +68,7 @@ def dice_per_tissue(labels: np.ndarray, truth: np.ndarray) -> dict[str, float]:
 
 
 def cases(modality: str, voxel_mm: float, n_seeds: int, heads: Path, self_atlas: bool = False,
-          diploe: bool = False):
+          diploe: bool = False, fatty: bool = False):
     """(anatomy, atlas, noise, contrast, volume, truth) for every scan of one modality.
 
     self_atlas: the control that is *not* held out: each anatomy with an atlas built from itself (the
@@ -77,6 +78,8 @@ def cases(modality: str, voxel_mm: float, n_seeds: int, heads: Path, self_atlas:
     diploe: render the two real heads' skulls with a diploe between compact tables (`templates.with_diploe`,
     on each source's own grid; the contrast's "diploe" value); the phantom family has its own. The atlases
     are unchanged (built without one).
+    fatty: with `diploe`, MRI only: the real heads' marrow as bright as their fat, an adult's
+    (`templates.fatty_marrow`); CT scans are unchanged.
     """
     ants = ants_anatomy(heads)
     mni = mni152_anatomy()
@@ -91,6 +94,8 @@ def cases(modality: str, voxel_mm: float, n_seeds: int, heads: Path, self_atlas:
         for noise in NOISE[modality]:
             for seed in range(n_seeds):
                 contrast = None if seed == 0 else random_contrast(modality, np.random.default_rng(seed))
+                if fatty and modality == "mri":
+                    contrast = fatty_marrow(contrast)
                 vol = render(a, modality, contrast=contrast, noise=noise, bias=bias, seed=seed)
                 yield name, atlas, noise, "default" if seed == 0 else f"random {seed}", vol, truth
     for noise in PHANTOM_NOISE[modality]:
@@ -105,7 +110,8 @@ def run(args) -> list[dict]:
         cfg = SegmentConfig(modality=modality, **(json.loads(args.config) if getattr(args, "config", None) else {}))
         for anat, atlas, noise, contrast, vol, truth in cases(modality, args.voxel_mm, args.seeds, Path(args.heads),
                                                                 getattr(args, "self_atlas", False),
-                                                                getattr(args, "diploe", False)):
+                                                                getattr(args, "diploe", False),
+                                                                getattr(args, "fatty_marrow", False)):
             t = time.perf_counter()
             try:
                 labels, seg = segment_reported(vol, atlas, cfg)
@@ -170,8 +176,12 @@ def main(argv=None):
                    help="control, not held out: segment each anatomy with an atlas built from itself (the ceiling)")
     p.add_argument("--diploe", action="store_true",
                    help="the real heads' skulls with a diploe between compact tables (templates.with_diploe)")
+    p.add_argument("--fatty-marrow", action="store_true",
+                   help="with --diploe, MRI: the marrow as bright as fat, an adult's (templates.fatty_marrow)")
     p.add_argument("--out", default=None, help="path stem: write <out>.json and <out>.md, atomically")
     args = p.parse_args(argv)
+    if args.fatty_marrow and not args.diploe:
+        p.error("--fatty-marrow sets the marrow's intensity: it needs --diploe (the real heads have no marrow without it)")
     args.partial = (args.out[:-5] if args.out.endswith(".json") else args.out) + ".partial.json" if args.out else None
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     for name in ("jax", "jaxhead"):
@@ -183,7 +193,9 @@ def main(argv=None):
     head = (("CONTROL, NOT HELD OUT: Dice per tissue with each anatomy's own atlas (--self-atlas), mean"
              if args.self_atlas else "Dice per tissue on anatomy not in the atlas, mean") +
             " (and minimum) over the scans of each row, "
-            + ("real heads rendered WITH A DIPLOE (--diploe), " if args.diploe else "") +
+            + ("real heads rendered WITH A DIPLOE (--diploe), " if args.diploe else "")
+            + ("MRI marrow AS BRIGHT AS FAT (--fatty-marrow; the phantom family keeps its own), "
+               if args.fatty_marrow else "") +
             f"{args.voxel_mm:g} mm voxels, atlases 2 mm; noise: MRI Rician sd / white matter (phantom: its "
             f"own definition), CT HU; MRI bias field up to +-20 %. Bars (minimum): MRI 0.93/0.75/0.85/0.93, "
             f"CT 0.93/0.65/0.90/0.93 (brain/CSF/skull/scalp). Run: {wall:.0f} s wall, {cpu:.0f} s CPU, "

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxhead.segmentation.templates import CT_HU, MRI_CONTRAST, Anatomy, render, with_diploe
+from jaxhead.segmentation.templates import CT_HU, MRI_CONTRAST, Anatomy, fatty_marrow, random_contrast, render, with_diploe
 
 
 def _shell(r_in: float, r_out: float, vox: float = 0.5, n: int = 72) -> Anatomy:
@@ -61,3 +61,18 @@ def test_resampled_diploe_is_averaged_like_the_fractions():
     assert np.all(c.diploe <= c.fractions[4] + 1e-6)
     with pytest.raises(ValueError, match="diploe"):
         Anatomy(a.fractions, a.affine, "bad", diploe=a.fractions[2])  # "diploe" in the brain
+
+
+def test_fatty_marrow_is_as_bright_as_the_contrasts_fat():
+    a = with_diploe(_shell(8.0, 15.0))
+    d = a.diploe > 0.99
+    drawn = random_contrast("mri", np.random.default_rng(3))
+    for given in (None, drawn):
+        c = fatty_marrow(given)
+        base = dict(MRI_CONTRAST, **(given or {}))
+        assert c["diploe"] == base["fat"] and {k: v for k, v in c.items() if k != "diploe"} == {
+            k: v for k, v in base.items() if k != "diploe"}
+        np.testing.assert_allclose(render(a, "mri", contrast=c, texture=False).data[d], base["fat"], atol=1e-9)
+    assert drawn["diploe"] != drawn["fat"]  # the caller's contrast is not changed
+    with pytest.raises(ValueError, match="table"):
+        fatty_marrow(dict(CT_HU))

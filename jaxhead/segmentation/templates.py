@@ -89,10 +89,28 @@ CT_HU_RANGE = dict(air=(-1000.0, -1000.0), grey_matter=(35.0, 45.0), white_matte
 #: "diploe" (both modalities) and "table" (CT) are drawn only where an Anatomy has a `diploe` map
 #: (`with_diploe`): the skull is then marrow ("diploe") between compact tables (CT: "table", compact
 #: bone's 1500-1900 HU, in place of the mixture's "skull"; MRI: "skull", already compact bone's). The
-#: diploe's intensities are the phantom's (`jaxhead.phantom`: fatty marrow on T1, 0.3-0.6 of white
-#: matter; 550-850 HU), as is the table thickness below (the phantom's outer table 1.2-2.4 mm, inner
-#: 0.8-1.6 mm). Both keys come last in the ranges, so `random_contrast` draws the other tissues as before.
+#: diploe's intensities are the phantom's (`jaxhead.phantom`: 0.3-0.6 of white matter on T1; 550-850
+#: HU), as is the table thickness below (the phantom's outer table 1.2-2.4 mm, inner 0.8-1.6 mm). Both
+#: keys come last in the ranges, so `random_contrast` draws the other tissues as before.
+#: On T1 that marrow is as dark as a child's red (haematopoietic) marrow; an adult's calvarial marrow is
+#: fatty and as bright as fat (`fatty_marrow`).
 DIPLOE_TABLE_MM = 1.5
+
+
+def fatty_marrow(contrast: dict | None = None) -> dict:
+    """An MRI contrast (`render`'s; None: MRI_CONTRAST) whose diploe is as bright as its fat: the T1 of an
+    adult's calvarial marrow. On T1-weighted images skull marrow becomes isointense with fat (red to
+    yellow marrow) at a mean age of 9.7 years in the frontal, 11.0 in the occipital squama and 11.5 in the
+    parietal bone (Simonson & Kao 1992, Pediatr. Radiol. 22:556, 324 children); the default "diploe"
+    (0.3-0.6 of white matter, below fat's 0.8-1.4) is the darker marrow of younger children."""
+    out = dict(MRI_CONTRAST)
+    out.update(contrast or {})
+    unknown = sorted(set(out) - set(MRI_CONTRAST))
+    if unknown:
+        raise ValueError(f"fatty_marrow: `contrast` has keys {unknown} that no MRI contrast has "
+                         f"({sorted(MRI_CONTRAST)}); pass an MRI contrast (a CT's marrow is not changed).")
+    out["diploe"] = out["fat"]
+    return out
 
 
 class Anatomy(eqx.Module):
