@@ -8,7 +8,7 @@ from scipy.optimize import minimize
 
 from jaxhead.segmentation import SegmentConfig
 from jaxhead.segmentation.em import EMOptions, _m_step, fit_mixture, ordered_means
-from jaxhead.segmentation.segment import CSF_BRAIN_MARGIN_HU
+from jaxhead.segmentation.segment import CSF_BRAIN_MARGIN_HU, DIPLOE_ABOVE_CSF_LOG
 from jaxhead.tissue import Tissue
 
 jax.config.update("jax_enable_x64", True)
@@ -154,6 +154,24 @@ def test_segment_config_csf_mix_below_bone():
         SegmentConfig(modality="ct", gaussians={"csf": 1}, csf_mix_below_bone=True)
     with pytest.raises(ValueError, match="csf_mix_below_bone"):
         SegmentConfig(modality="mri", csf_mix_below_bone=True)
+
+
+def test_segment_config_csf_mix_below_brain():
+    """MRI on request: the CSF class's second Gaussian (its partial volume) at or below the brain's first."""
+    opts = SegmentConfig(modality="mri", csf_mix_below_brain=True).em_options(1.0)
+    cc = opts.component_class
+    (lo, hi, margin), = opts.mean_order
+    assert (cc[lo], cc[hi], margin) == (int(Tissue.CSF), int(Tissue.BRAIN), 0.0)
+    assert lo == cc.index(int(Tissue.CSF)) + 1 and hi == cc.index(int(Tissue.BRAIN))
+    assert SegmentConfig(modality="mri", csf_mix_below_brain=False).em_options(1.0).mean_order == ()
+    # beside the diploe's order (disjoint Gaussians: the CSF's first there, its second here)
+    both = SegmentConfig(modality="mri", csf_mix_below_brain=True, diploe_above_csf=True).em_options(1.0).mean_order
+    assert set(both) == {opts.mean_order[0], (cc.index(int(Tissue.CSF)), cc.index(int(Tissue.SKULL)) + 1,
+                                              DIPLOE_ABOVE_CSF_LOG)}
+    with pytest.raises(ValueError, match="csf_mix_below_brain"):
+        SegmentConfig(modality="mri", gaussians={"csf": 1}, csf_mix_below_brain=True)
+    with pytest.raises(ValueError, match="csf_mix_below_brain"):
+        SegmentConfig(modality="ct", csf_mix_below_brain=True)
 
 
 @pytest.mark.parametrize(

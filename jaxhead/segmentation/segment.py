@@ -181,6 +181,17 @@ DEFAULT_CSF_MIX_BELOW_BONE = {"mri": False, "ct": True}
 #: draws (its skull is one intensity, the tables' Gaussian's, in any order with CSF) and holds for
 #: the phantom's MRI (diploe 0.3-0.6, CSF 0.12-0.22 of white matter).
 DIPLOE_ABOVE_CSF_LOG = float(np.log(1.25))
+#: MRI (T1-weighted): the M-step keeps the CSF class's second Gaussian (free Gaussians start at the
+#: class's intensity quantiles: the first is pure CSF, the second the brighter partial volume) at or
+#: below the brain class's first (lowest-starting: grey matter and its partial volume) Gaussian, in log
+#: intensity (em.ordered_means; `csf_mix_below_brain`). The physics: CSF has the longest T1 of the head's
+#: soft tissues (3,500-4,500 ms against grey matter's 1,100-1,800 ms; Stanisz et al. 2005, Magn. Reson.
+#: Med. 54:507, Table 1), so on a T1-weighted scan it is darker than grey matter; a voxel the majority rule
+#: calls CSF is at least half CSF, and mixed with grey or white matter or bone it stays below grey matter.
+#: What the order rules out: on a skull whose marrow is as bright as fat (an adult's, `templates.
+#: fatty_marrow`), the CSF class's second Gaussian took the marrow (1.08 of white matter), the skull's
+#: Gaussians moved onto the scalp's muscle and fat, and the layers shifted one out (ANTs head, 1 mm, 3 %,
+#: held out: skull Dice 0.004; experiments/results/segmentation_diploe.md, session 22).
 #: Whether that order is imposed by default. CT: never (its skull Gaussians are cortical bone and diploe
 #: in Hounsfield units, both far above CSF). MRI: off. Measured on the held-out heads (experiments/
 #: results/segmentation_mri_capture.md): with two CSF Gaussians it changes nothing (the CSF class's
@@ -188,6 +199,8 @@ DIPLOE_ABOVE_CSF_LOG = float(np.log(1.25))
 #: 0.758 and skull 0.838 -> 0.857 (minimum), ANTs 3 % CSF 0.786 -> 0.807, but MNI152 8 % CSF 0.590 ->
 #: 0.557 and the phantom's 3 % scalp 0.783 -> 0.746.
 DEFAULT_DIPLOE_ABOVE_CSF = {"mri": False, "ct": False}
+#: Whether `csf_mix_below_brain` is imposed by default (CT: never; its CSF mixture with bone lies above brain).
+DEFAULT_CSF_MIX_BELOW_BRAIN = {"mri": False, "ct": False}
 #: Inverse-gamma prior on each free Gaussian's variance, centred on its class's pooled variance, by
 #: default (em.map_variances: worth nu times the class's voxels). Off (maximum likelihood) for both;
 #: experiments/results/segmentation_variance_prior.md.
@@ -351,6 +364,10 @@ class SegmentConfig:
         csf_mix_below_bone: CT: keep the CSF class's second Gaussian mean (its mixture with bone) at or
             below the skull class's first (em.ordered_means; DEFAULT_CSF_MIX_BELOW_BONE). Needs >= 2 free
             CSF Gaussians. None: the modality default (on for CT); True with an MRI is an error.
+        csf_mix_below_brain: MRI (T1-weighted): keep the CSF class's second Gaussian mean at or below the
+            brain class's first (T1 physics: CSF darker than grey matter; em.ordered_means). Needs >= 2
+            free CSF Gaussians. None: the modality default (DEFAULT_CSF_MIX_BELOW_BRAIN; skipped where
+            the CSF class has one Gaussian); True with a CT is an error.
         diploe_above_csf: MRI: keep the skull class's second Gaussian mean DIPLOE_ABOVE_CSF_LOG (log
             intensity) above the CSF class's first Gaussian mean (T1 physics: fatty marrow brighter than
             CSF; em.ordered_means). Needs >= 2 free skull Gaussians. None: the modality default
@@ -425,6 +442,7 @@ class SegmentConfig:
     csf_below_brain: bool | None = None
     variance_prior: float | None = None
     csf_mix_below_bone: bool | None = None
+    csf_mix_below_brain: bool | None = None
     diploe_above_csf: bool | None = None
     refine_warp: int | None = None
     warp_change_mm: float | None = None
@@ -476,6 +494,11 @@ class SegmentConfig:
                                "(Hounsfield units); on MRI bone is dark and CSF's mixtures with it are darker "
                                "than CSF.")
         self._check_second_gaussian("csf_mix_below_bone", self.csf_mix_below_bone, Tissue.CSF, "CSF, its bone mixture")
+        _check_modality_switch("csf_mix_below_brain", self.csf_mix_below_brain, self.modality, "mri",
+                               "(a T1-weighted log intensity order); on CT the CSF class's second Gaussian is "
+                               "its mixture with bone, above brain.")
+        self._check_second_gaussian("csf_mix_below_brain", self.csf_mix_below_brain, Tissue.CSF,
+                                    "CSF, its partial volume")
         _check_modality_switch("diploe_above_csf", self.diploe_above_csf, self.modality, "mri",
                                "(a T1-weighted log intensity order); in CT both skull Gaussians lie hundreds of "
                                "HU above CSF.")
@@ -582,6 +605,10 @@ class SegmentConfig:
         mix = DEFAULT_CSF_MIX_BELOW_BONE[self.modality] if self.csf_mix_below_bone is None else self.csf_mix_below_bone
         if mix and counts[int(Tissue.CSF)] >= 2:  # the default is skipped where the CSF class has one Gaussian
             order += ((cc.index(int(Tissue.CSF)) + 1, cc.index(int(Tissue.SKULL)), 0.0),)
+        dark = (DEFAULT_CSF_MIX_BELOW_BRAIN[self.modality] if self.csf_mix_below_brain is None
+                else self.csf_mix_below_brain)
+        if dark and counts[int(Tissue.CSF)] >= 2:  # as for the bone mixture: skipped with one CSF Gaussian
+            order += ((cc.index(int(Tissue.CSF)) + 1, cc.index(int(Tissue.BRAIN)), 0.0),)
         diploe = DEFAULT_DIPLOE_ABOVE_CSF[self.modality] if self.diploe_above_csf is None else self.diploe_above_csf
         if diploe:  # the skull's free Gaussians come first in its group, tables then diploe
             order += ((cc.index(int(Tissue.CSF)), cc.index(int(Tissue.SKULL)) + 1, DIPLOE_ABOVE_CSF_LOG),)
