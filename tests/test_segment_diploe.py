@@ -48,13 +48,14 @@ def test_order_prevents_skull_capturing_csf():
 
 
 def test_segment_config_diploe_above_csf():
-    opts = SegmentConfig(modality="mri", diploe_above_csf=True).em_options(1.0)
+    opts = SegmentConfig(modality="mri", diploe_above_csf=True, csf_mix_below_brain=False).em_options(1.0)
     cc = opts.component_class
     (lo, hi, margin), = opts.mean_order
     assert (cc[lo], cc[hi], margin) == (int(Tissue.CSF), int(Tissue.SKULL), DIPLOE_ABOVE_CSF_LOG)
     assert lo == cc.index(int(Tissue.CSF)) and hi == cc.index(int(Tissue.SKULL)) + 1  # CSF's first, skull's second
     assert 0 < DIPLOE_ABOVE_CSF_LOG < np.log(1.4)  # below the smallest marrow/CSF ratio quoted in segment.py
-    assert SegmentConfig(modality="mri").em_options(1.0).mean_order == ()  # off by default
+    default = SegmentConfig(modality="mri").em_options(1.0).mean_order  # off by default
+    assert (cc.index(int(Tissue.CSF)), cc.index(int(Tissue.SKULL)) + 1, DIPLOE_ABOVE_CSF_LOG) not in default
     pv = SegmentConfig(modality="mri", diploe_above_csf=True, partial_volume=True).em_options(1.0)
     assert all(pv.is_free(j) for j in pv.mean_order[0][:2])
     with pytest.raises(ValueError, match="diploe_above_csf"):

@@ -130,7 +130,8 @@ def test_segment_config_csf_below_brain():
     assert (cc[lo], cc[hi], margin) == (int(Tissue.CSF), int(Tissue.BRAIN), CSF_BRAIN_MARGIN_HU)
     assert lo == cc.index(int(Tissue.CSF)) and hi == cc.index(int(Tissue.BRAIN))  # the first of each class
     assert SegmentConfig(modality="ct", csf_below_brain=False, csf_mix_below_bone=False).em_options(1.0).mean_order == ()
-    assert SegmentConfig(modality="mri").em_options(1.0).mean_order == ()
+    # MRI: none of CT's orders (its own default, `csf_mix_below_brain`, is tested below)
+    assert SegmentConfig(modality="mri", csf_mix_below_brain=False).em_options(1.0).mean_order == ()
     pv = SegmentConfig(modality="ct", partial_volume=True).em_options(1.0)
     assert all(pv.is_free(j) for j in pv.mean_order[0][:2])
     with pytest.raises(ValueError, match="csf_below_brain"):
@@ -157,8 +158,9 @@ def test_segment_config_csf_mix_below_bone():
 
 
 def test_segment_config_csf_mix_below_brain():
-    """MRI on request: the CSF class's second Gaussian (its partial volume) at or below the brain's first."""
-    opts = SegmentConfig(modality="mri", csf_mix_below_brain=True).em_options(1.0)
+    """MRI by default: the CSF class's second Gaussian (its partial volume) at or below the brain's first."""
+    opts = SegmentConfig(modality="mri").em_options(1.0)
+    assert opts.mean_order == SegmentConfig(modality="mri", csf_mix_below_brain=True).em_options(1.0).mean_order
     cc = opts.component_class
     (lo, hi, margin), = opts.mean_order
     assert (cc[lo], cc[hi], margin) == (int(Tissue.CSF), int(Tissue.BRAIN), 0.0)
@@ -168,6 +170,8 @@ def test_segment_config_csf_mix_below_brain():
     both = SegmentConfig(modality="mri", csf_mix_below_brain=True, diploe_above_csf=True).em_options(1.0).mean_order
     assert set(both) == {opts.mean_order[0], (cc.index(int(Tissue.CSF)), cc.index(int(Tissue.SKULL)) + 1,
                                               DIPLOE_ABOVE_CSF_LOG)}
+    # one CSF Gaussian: the default has nothing to order; asking is an error
+    assert SegmentConfig(modality="mri", gaussians={"csf": 1}).em_options(1.0).mean_order == ()
     with pytest.raises(ValueError, match="csf_mix_below_brain"):
         SegmentConfig(modality="mri", gaussians={"csf": 1}, csf_mix_below_brain=True)
     with pytest.raises(ValueError, match="csf_mix_below_brain"):
