@@ -182,6 +182,13 @@ DEFAULT_CSF_MIX_BELOW_BONE = {"mri": False, "ct": True}
 #: draws (its skull is one intensity, the tables' Gaussian's, in any order with CSF) and holds for
 #: the phantom's MRI (diploe 0.3-0.6, CSF 0.12-0.22 of white matter).
 DIPLOE_ABOVE_CSF_LOG = float(np.log(1.25))
+#: Whether that order is imposed by default. CT: never (its skull Gaussians are cortical bone and diploe
+#: in Hounsfield units, both far above CSF). MRI: off. Measured on the held-out heads (experiments/
+#: results/segmentation_mri_capture.md): with two CSF Gaussians it changes nothing (the CSF class's
+#: first Gaussian steps below and empties); with one (`gaussians={"csf": 1}`) MNI152 3 % CSF 0.669 ->
+#: 0.758 and skull 0.838 -> 0.857 (minimum), ANTs 3 % CSF 0.786 -> 0.807, but MNI152 8 % CSF 0.590 ->
+#: 0.557 and the phantom's 3 % scalp 0.783 -> 0.746.
+DEFAULT_DIPLOE_ABOVE_CSF = {"mri": False, "ct": False}
 #: MRI (T1-weighted): the M-step keeps the CSF class's second Gaussian (free Gaussians start at the
 #: class's intensity quantiles: the first is pure CSF, the second the brighter partial volume) at or
 #: below the brain class's first (lowest-starting: grey matter and its partial volume) Gaussian, in log
@@ -193,13 +200,6 @@ DIPLOE_ABOVE_CSF_LOG = float(np.log(1.25))
 #: fatty_marrow`), the CSF class's second Gaussian took the marrow (1.08 of white matter), the skull's
 #: Gaussians moved onto the scalp's muscle and fat, and the layers shifted one out (ANTs head, 1 mm, 3 %,
 #: held out: skull Dice 0.004; experiments/results/segmentation_diploe.md, session 22).
-#: Whether that order is imposed by default. CT: never (its skull Gaussians are cortical bone and diploe
-#: in Hounsfield units, both far above CSF). MRI: off. Measured on the held-out heads (experiments/
-#: results/segmentation_mri_capture.md): with two CSF Gaussians it changes nothing (the CSF class's
-#: first Gaussian steps below and empties); with one (`gaussians={"csf": 1}`) MNI152 3 % CSF 0.669 ->
-#: 0.758 and skull 0.838 -> 0.857 (minimum), ANTs 3 % CSF 0.786 -> 0.807, but MNI152 8 % CSF 0.590 ->
-#: 0.557 and the phantom's 3 % scalp 0.783 -> 0.746.
-DEFAULT_DIPLOE_ABOVE_CSF = {"mri": False, "ct": False}
 #: Whether `csf_mix_below_brain` is imposed by default. CT: never (its CSF mixture with bone lies above
 #: brain). MRI: on. Measured held out, minimum Dice brain/CSF/skull/scalp (session 22; experiments/results/
 #: segmentation_csf_dark_*.md against the tables without it): adult (fatty) marrow, ANTs 3 %, 1 mm
