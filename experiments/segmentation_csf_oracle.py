@@ -22,7 +22,7 @@ import numpy as np
 from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from segmentation_accuracy import HEADS, NOISE, _write_atomic  # noqa: E402
+from segmentation_accuracy import HEADS, NOISE, _write_atomic, dice  # noqa: E402
 
 from jaxhead.segmentation.templates import ants_anatomy, mni152_anatomy, random_contrast, render  # noqa: E402
 from jaxhead.tissue import Tissue  # noqa: E402
@@ -30,13 +30,8 @@ from jaxhead.tissue import Tissue  # noqa: E402
 
 def oracle_dice(y: np.ndarray, csf: np.ndarray) -> float:
     """The best CSF Dice of one threshold on `y` (either side), `csf` the true CSF among these voxels."""
-    best = 0.0
-    n_csf = csf.sum()
-    for th in np.percentile(y, np.linspace(1, 60, 120)):
-        for below in (True, False):
-            p = y < th if below else y > th
-            best = max(best, 2.0 * (p & csf).sum() / (p.sum() + n_csf))
-    return float(best)
+    return max(dice(y < th if below else y > th, csf)
+               for th in np.percentile(y, np.linspace(1, 60, 120)) for below in (True, False))
 
 
 def main(argv=None):
