@@ -276,6 +276,20 @@ DEFAULT_DEPTH_PRIOR = {"mri": False, "ct": False}
 #: 0.967/0.707/0.828/0.963 -> 0.967/0.735/0.860/0.969, the 3 % rows within -0.006..+0.015. On CT the
 #: bone is bright, so intensity alone splits CSF from skull: an error with a CT.
 DEFAULT_LAYER_SPLIT = {"mri": True, "ct": False}
+#: `marrow_inside_skull`: on for MRI. An adult's calvarial marrow is fatty, as bright as the scalp's fat on T1
+#: (Simonson & Kao 1992, Pediatr. Radiol. 22:556), so intensity cannot tell it from scalp and a held-out
+#: atlas decides; where that atlas's skull is thinner than the head's or the registration is pulled by the
+#: bright marrow (its skull prior at the MNI152 head's marrow falls 0.47 -> 0.29 when the marrow is
+#: fat-bright, experiments/results/segmentation_marrow_inside_skull.md) the marrow is labelled scalp, and the
+#: skull class, left with the thin tables, drifts onto the CSF. Topology decides instead: scalp lies outside the
+#: skull, so scalp-labelled voxels that the segmented skull encloses (`enclosed`: every one of the 26 grid rays
+#: meets skull before background) are the skull's; their scalp prior moves to skull and the EM runs again, so
+#: the skull class learns the marrow's intensity. Rounds repeat while new voxels are enclosed, at most
+#: MARROW_ROUNDS. Where the tables are not resolved (2 mm: partial volume with the marrow and the fat) the
+#: skull does not enclose the marrow and the step changes nothing. On CT the skull is bright whatever its
+#: marrow (`scalp_outside_skull` is CT's rule for scalp inside the skull): an error with a CT.
+DEFAULT_MARROW_INSIDE_SKULL = {"mri": True, "ct": False}
+MARROW_ROUNDS = 3
 #: the neighbourhood that shares one CSF/skull change point (Gaussian window sd, mm) and the width (in
 #: normalised depth) of the prior's step at it. Measured at 2 mm (same file): window 4 / 6 / 8 / 12 mm
 #: gives the 8 % CSF minima 0.734 / 0.735 / 0.731 / 0.713 (ANTs) and 0.792 / 0.789 / 0.774 / 0.739
@@ -415,6 +429,10 @@ class SegmentConfig:
             (`depth_prior.fit_layer_split`: CSF inside the skull; LAYER_SPLIT_MM), share each voxel's
             CSF + skull prior by a step at it (`depth_prior.with_local_split`) and run the EM again.
             None: the modality default (DEFAULT_LAYER_SPLIT: on for MRI); True with a CT is an error.
+        marrow_inside_skull: MRI: after the EM (and the depth prior), before the layer split, scalp-labelled
+            voxels that the segmented skull encloses (`enclosed`) get the skull's prior and the EM runs
+            again, up to MARROW_ROUNDS times (DEFAULT_MARROW_INSIDE_SKULL's comment: an adult's marrow is
+            as bright as fat). None: the modality default (on for MRI); True with a CT is an error.
         unmodelled_start: where the atlas models no bone (`Atlas.unmodelled`: the mni152 atlas's face
             and neck), the skull and scalp shares the first EM starts from, before their proportions
             are learnt from the scan (`classify`): "equal" (half each) or "atlas" (the atlas's
@@ -457,6 +475,7 @@ class SegmentConfig:
     noise_floor: bool | None = None
     depth_prior: bool | None = None
     layer_split: bool | None = None
+    marrow_inside_skull: bool | None = None
     unmodelled_start: Literal["equal", "atlas"] | None = None
 
     def __post_init__(self):
@@ -545,6 +564,9 @@ class SegmentConfig:
         _check_modality_switch("layer_split", self.layer_split, self.modality, "mri",
                                "(T1: CSF and bone both dark); on CT the bone is bright, so the intensities "
                                "split CSF from skull without it.")
+        _check_modality_switch("marrow_inside_skull", self.marrow_inside_skull, self.modality, "mri",
+                               "(T1: fatty marrow as bright as the scalp's fat); on CT the bone is bright and "
+                               "`scalp_outside_skull` relabels scalp inside the skull.")
         if self.unmodelled_start is not None and self.unmodelled_start not in UNMODELLED_STARTS:
             raise ValueError(
                 f"[segment] `unmodelled_start` must be one of {UNMODELLED_STARTS} (the first EM's skull/scalp "
@@ -576,6 +598,12 @@ class SegmentConfig:
     def layer_split_on(self) -> bool:
         """Whether the CSF/skull split is learnt from the scan (`layer_split`, or the modality default)."""
         return DEFAULT_LAYER_SPLIT[self.modality] if self.layer_split is None else bool(self.layer_split)
+
+    def marrow_inside_skull_on(self) -> bool:
+        """Whether scalp the skull encloses is given to the skull (`marrow_inside_skull`, or the modality default)."""
+        if self.marrow_inside_skull is None:
+            return DEFAULT_MARROW_INSIDE_SKULL[self.modality]
+        return bool(self.marrow_inside_skull)
 
     def unmodelled_start_of(self) -> str:
         """The first EM's shares where the atlas models no bone (`unmodelled_start`, or the modality default)."""
@@ -1148,10 +1176,13 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
             unmodelled = unmodelled_on_grid(volume, atlas, transform, cfg)
         (post, res, opts, coords, pi, sample), summary["depth_prior"] = _depth_prior(
             volume, atlas, np.asarray(priors), unmodelled, pi, post, cfg)
+    if (cfg.layer_split_on() or cfg.marrow_inside_skull_on()) and cfg.refine_rounds() > 0 and not cfg.depth_prior_on():
+        priors = resample(atlas.priors, atlas.affine, transform, volume.shape, volume.affine, dtype=_dtype(cfg))
+        unmodelled = unmodelled_on_grid(volume, atlas, transform, cfg)
+    if cfg.marrow_inside_skull_on():
+        priors, (post, res, opts, coords, pi, sample), summary["marrow_inside_skull"] = _marrow_inside_skull(
+            volume, np.asarray(priors), unmodelled, pi, (post, res, opts, coords, pi, sample), cfg)
     if cfg.layer_split_on():
-        if cfg.refine_rounds() > 0 and not cfg.depth_prior_on():
-            priors = resample(atlas.priors, atlas.affine, transform, volume.shape, volume.affine, dtype=_dtype(cfg))
-            unmodelled = unmodelled_on_grid(volume, atlas, transform, cfg)
         (post, res, opts, coords, pi, sample), summary["layer_split"] = _layer_split(
             volume, np.asarray(priors), unmodelled, pi, (post, res, opts, coords), cfg)
     if cfg.modality == "ct" and cfg.bone_majority:
@@ -1243,6 +1274,35 @@ def _brain_and_scalp(labels: np.ndarray, step: str) -> None:
             f"[segment] {step}: the first EM labelled no {' and no '.join(missing)} voxel, so there is no "
             "depth between brain and scalp; the scan may not be a head MRI (check `modality` and the scan), or "
             f"set {step} = false.")
+
+
+def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: SegmentConfig):
+    """Scalp-labelled voxels that the segmented skull encloses (`enclosed`, background the escape) get their
+    scalp prior moved to skull, and the EM runs again from the last fit; repeated while new voxels are
+    enclosed, at most MARROW_ROUNDS times (DEFAULT_MARROW_INSIDE_SKULL's comment). `fit` is `_classify_all`'s
+    output, `pi` the proportions learnt where the atlas models no bone (None: none), kept. Returns (the
+    priors, without those proportions applied, for the later steps; the fit; summary for the run report)."""
+    t0 = time.perf_counter()
+    priors = np.array(priors, np.float32, copy=True)
+    moved, total = [], np.zeros(priors.shape[1:], bool)
+    for _ in range(MARROW_ROUNDS):
+        labels = np.argmax(fit[0], axis=0)
+        inside = (labels == Tissue.SCALP) & ~total
+        if inside.any() and (labels == Tissue.SKULL).any():
+            inside &= enclosed(labels == Tissue.SKULL, labels == Tissue.BACKGROUND)
+        if not inside.any():
+            break
+        moved.append(int(inside.sum()))
+        total |= inside
+        priors[Tissue.SKULL][inside] += priors[Tissue.SCALP][inside]
+        priors[Tissue.SCALP][inside] = 0.0
+        first = with_proportions(priors, unmodelled, pi) if pi is not None else priors
+        new = _classify(volume, first, cfg, init=fit[1].params)
+        fit = new[:4] + (pi,) + new[5:]
+    summary = dict(rounds=len(moved), voxels_per_round=moved, voxels=int(total.sum()),
+                   seconds=round(time.perf_counter() - t0, 1))
+    log.info("segment (%s): scalp enclosed by the skull given to the skull: %s", cfg.modality, summary)
+    return priors, fit, summary
 
 
 def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: SegmentConfig):
