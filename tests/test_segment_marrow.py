@@ -12,7 +12,7 @@ from jaxhead.segmentation.segment import MARROW_MIN_SHARE, segment_reported
 from jaxhead.tissue import Tissue
 from jaxhead.volume import Volume
 
-BG, BRAIN, CSF, SKULL, SCALP = (int(t) for t in (Tissue.BACKGROUND, Tissue.BRAIN, Tissue.CSF, Tissue.SKULL, Tissue.SCALP))
+BG, BRAIN, CSF, SKULL, SCALP = (int(t) for t in Tissue)
 #: T1 magnitudes (white matter 1): an adult's marrow as bright as fat (templates.fatty_marrow)
 T1 = dict(wm=1.0, gm=0.65, csf=0.25, bone=0.12, fat=1.1, muscle=0.45, skin=0.75)
 N = 84  # 1 mm voxels; the head's outer radius is 38 mm
@@ -46,7 +46,8 @@ def _scan(marrow: bool, seed=0):
 
 def _atlas(skull_outer_mm: float, blur_mm: float = 1.5):
     """An atlas of the same head whose skull ends at `skull_outer_mm` (scalp from there): priors one-hot,
-    blurred by `blur_mm` (Gaussian sd), plus a 5 % share of every head tissue inside the head; template without marrow."""
+    blurred by `blur_mm` (Gaussian sd), plus a 5 % share of every head tissue inside the head; template
+    without marrow."""
     r = _radius()
     lab = _shells(r, [18, 21, skull_outer_mm, 38], [BRAIN, CSF, SKULL, SCALP, BG])
     pri = np.stack([ndimage.gaussian_filter((lab == k).astype(np.float64), blur_mm) for k in range(5)])
@@ -113,3 +114,16 @@ def test_segment_config_marrow_inside_skull():
         SegmentConfig(modality="ct", marrow_inside_skull=True)
     with pytest.raises(ValueError, match="marrow_inside_skull"):
         SegmentConfig(modality="mri", marrow_inside_skull="yes")
+
+
+def test_skipped_and_said_so_on_voxels_coarser_than_a_table():
+    """At 2 mm the tables are partial volume with the marrow and the fat: the step does not run, the report
+    says why, and the labels are those with it off."""
+    vol, _ = _scan(marrow=True)
+    coarse = Volume(vol.data[::2, ::2, ::2], np.diag([2.0, 2.0, 2.0, 1.0]))
+    atlas = _atlas(skull_outer_mm=25.0, blur_mm=3.0)
+    on, seg = segment_reported(coarse, atlas, SegmentConfig(**CFG))
+    off, _ = segment_reported(coarse, atlas, SegmentConfig(**CFG, marrow_inside_skull=False))
+    report = seg.registration["marrow_inside_skull"]
+    assert report["rounds"] == 0 and "MARROW_MAX_VOXEL_MM" in report["skipped"]
+    np.testing.assert_array_equal(on.labels, off.labels)

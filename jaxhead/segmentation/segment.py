@@ -8,6 +8,8 @@ Pipeline (one method for both modalities, as the seed's CT branch: Vonach et al.
    grid (`em_sample_mm`, as SPM samples every 3 mm to estimate its mixture), em.py; by default for CT
    on the scan after edge-preserving smoothing tied to its estimated noise (`denoise`, denoise.py),
 4. posteriors on the full grid at the fitted parameters with mean-field MRF sweeps,
+4a. MRI: scalp-labelled voxels that the segmented skull encloses (an adult's marrow, as bright as fat)
+   given the skull's prior, and 3-4 again (`SegmentConfig.marrow_inside_skull`),
 4b. MRI: the CSF/skull change point in depth between the segmented brain and scalp learnt from the
    scan's own intensities in the dark band between them (CSF inside the skull), the CSF/skull priors
    shared by a step at it, and 3-4 again (`depth_prior.fit_layer_split`, `SegmentConfig.layer_split`;
@@ -36,6 +38,8 @@ What the intensity model assumes (and what it learns from the scan):
   multiplicative bias field (Legendre polynomial, degree 4; tens of per cent), noise small against
   the tissue contrasts (a few per cent). CT: Hounsfield units (air near -1000), no bias field.
 - Tissue boundaries are smooth on the voxel scale (Potts MRF, beta).
+- MRI: scalp lies outside the skull, so a scalp-labelled layer the skull encloses is its marrow
+  (`marrow_inside_skull`; voxels of at most MARROW_MAX_VOXEL_MM, where the tables can close around it).
 - MRI: between the brain and the scalp, CSF lies inside the skull, and within a neighbourhood of
   LAYER_SPLIT_MM the CSF's share of the band's depth changes little (`layer_split`).
 - `denoise`: the noise is uncorrelated between voxels and roughly stationary (CT: additive, its sd
@@ -277,24 +281,36 @@ DEFAULT_DEPTH_PRIOR = {"mri": False, "ct": False}
 #: bone is bright, so intensity alone splits CSF from skull: an error with a CT.
 DEFAULT_LAYER_SPLIT = {"mri": True, "ct": False}
 #: `marrow_inside_skull`: on for MRI. An adult's calvarial marrow is fatty, as bright as the scalp's fat on T1
-#: (Simonson & Kao 1992, Pediatr. Radiol. 22:556), so intensity cannot tell it from scalp and a held-out
-#: atlas decides; where that atlas's skull is thinner than the head's or the registration is pulled by the
-#: bright marrow (its skull prior at the MNI152 head's marrow falls 0.47 -> 0.29 when the marrow is
-#: fat-bright, experiments/results/segmentation_marrow_inside_skull.md) the marrow is labelled scalp, and the
-#: skull class, left with the thin tables, drifts onto the CSF. Topology decides instead: scalp lies outside the
-#: skull, so scalp-labelled voxels that the segmented skull encloses (`enclosed`: every one of the 26 grid rays
-#: meets skull before background) are the skull's; their scalp prior moves to skull and the EM runs again, so
-#: the skull class learns the marrow's intensity. Rounds repeat while the newly enclosed voxels are at least
-#: MARROW_MIN_SHARE of the skull-labelled ones, at most MARROW_ROUNDS. Where the tables are not resolved (2 mm: partial volume with the marrow and the fat) the
-#: skull does not enclose the marrow and the step changes nothing. On CT the skull is bright whatever its
-#: marrow (`scalp_outside_skull` is CT's rule for scalp inside the skull): an error with a CT.
+#: (Simonson & Kao 1992, Pediatr. Radiol. 22:556), so intensity cannot tell it from scalp and a held-out atlas
+#: decides. Where that atlas's skull is thinner than the head's, or the registration is pulled inward by the
+#: bright marrow (the held-out skull prior at the MNI152 head's marrow: 0.47 without marrow, 0.29 with a
+#: fat-bright one; experiments/results/registration_marrow_pull.md), the marrow is labelled scalp, and the
+#: skull class, left with the thin tables, drifts onto the CSF. Topology decides instead: scalp lies outside
+#: the skull, so scalp-labelled voxels that the segmented skull encloses (`enclosed`: every one of the 26 grid
+#: rays meets skull before background) are the skull's; their scalp prior moves to skull and the EM runs
+#: again, so the skull class learns the marrow's intensity. It needs the tables resolved (MARROW_MAX_VOXEL_MM).
+#: On CT the skull is bright whatever its marrow (`scalp_outside_skull` is CT's rule for scalp inside the
+#: skull): an error with a CT.
 DEFAULT_MARROW_INSIDE_SKULL = {"mri": True, "ct": False}
+#: Most EM reruns of `marrow_inside_skull` (each about 15 s at 1 mm); a round runs while the newly enclosed
+#: voxels are at least MARROW_MIN_SHARE of the skull-labelled ones (MNI152 head, 1 mm, 8 %: 73k, 20k, 5k
+#: enclosed in the first three rounds).
 MARROW_ROUNDS = 3
+#: `marrow_inside_skull` runs only on scans whose coarsest voxel side is at most this (mm): a compact table is
+#: 1-2 mm thick (templates.DIPLOE_TABLE_MM: 1.5), and the skull encloses the marrow only where the tables are
+#: labelled skull. Measured (experiments/results/segmentation_marrow_inside_skull.md): at 1 mm it gives the
+#: MNI152 head's adult-marrow 8 % scan back its skull and CSF (0.306 -> 0.886, 0.311 -> 0.889), raises its
+#: random-contrast twin's skull 0.780 -> 0.815, and moves every other real-head scan (no, child's, adult's
+#: marrow) by at most 0.012; at 2 mm, where the tables are partial volume with the marrow and the fat, it
+#: changed 7 of the 16 real-head scans with marrow by -0.081 to +0.023, the worst the ANTs head's 3 % scan
+#: (skull 0.625 -> 0.544: the skull class's fat-bright Gaussian, once learnt, spread into the scalp's fat).
+MARROW_MAX_VOXEL_MM = 1.5
 #: Below this share of the skull-labelled voxels, scalp voxels the skull encloses are speckle (noise, partial
 #: volume), not a marrow layer, and the EM is not run again for them: every extra EM moves a fit, and one run
 #: for 3-10 voxels of 10^5 was seen to let the scalp class take the outer table (tests/test_segment_marrow.py).
 #: A calvarium's marrow is tens of per cent of its volume (`templates.with_diploe`: 48 % of the ANTs head's
-#: skull, 64 % of the MNI152 head's); the MNI152 head's first EM at 1 mm, 8 %, encloses 12 % of its skull label.
+#: skull, 64 % of the MNI152 head's); the MNI152 head's first round at 1 mm, 8 %, moves 73k voxels against
+#: about 0.5 million labelled skull.
 MARROW_MIN_SHARE = 0.01
 #: the neighbourhood that shares one CSF/skull change point (Gaussian window sd, mm) and the width (in
 #: normalised depth) of the prior's step at it. Measured at 2 mm (same file): window 4 / 6 / 8 / 12 mm
@@ -438,7 +454,8 @@ class SegmentConfig:
         marrow_inside_skull: MRI: after the EM (and the depth prior), before the layer split, scalp-labelled
             voxels that the segmented skull encloses (`enclosed`) get the skull's prior and the EM runs
             again, up to MARROW_ROUNDS times (DEFAULT_MARROW_INSIDE_SKULL's comment: an adult's marrow is
-            as bright as fat). None: the modality default (on for MRI); True with a CT is an error.
+            as bright as fat); skipped, and said so in the report, on voxels coarser than
+            MARROW_MAX_VOXEL_MM. None: the modality default (on for MRI); True with a CT is an error.
         unmodelled_start: where the atlas models no bone (`Atlas.unmodelled`: the mni152 atlas's face
             and neck), the skull and scalp shares the first EM starts from, before their proportions
             are learnt from the scan (`classify`): "equal" (half each) or "atlas" (the atlas's
@@ -682,7 +699,8 @@ class Segmentation(eqx.Module):
         registration: plausibility figures of the affine registration (`registration_summary`):
             scales, rotation (deg), determinant, NMI after the affine stage; and what the later steps
             did, each under its own key where it ran: "unmodelled" (the start and the learnt skull and scalp
-            shares where the atlas models no bone), "warp_refinement", "depth_prior" (MRI), "layer_split" (MRI),
+            shares where the atlas models no bone), "warp_refinement", "depth_prior" (MRI),
+            "marrow_inside_skull" (MRI: rounds, voxels given to the skull per round), "layer_split" (MRI),
             "bone_majority", "air_majority" and "scalp_outside_skull" (CT: thresholds and voxels
             relabelled).
     """
@@ -1290,6 +1308,12 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
     where the atlas models no bone (None: none), kept. Returns (the priors, without those proportions
     applied, for the later steps; the fit; summary for the run report)."""
     t0 = time.perf_counter()
+    vox = float(np.max(voxel_sizes(volume.affine)))
+    if vox > MARROW_MAX_VOXEL_MM:
+        summary = dict(rounds=0, voxels=0, skipped=f"voxels of {vox:.3g} mm, coarser than a compact table "
+                       f"({MARROW_MAX_VOXEL_MM} mm, MARROW_MAX_VOXEL_MM): the tables cannot enclose the marrow")
+        log.info("segment (%s): marrow_inside_skull skipped: %s", cfg.modality, summary["skipped"])
+        return priors, fit, summary
     priors = np.array(priors, np.float32, copy=True)
     moved, total, below = [], np.zeros(priors.shape[1:], bool), 0
     for _ in range(MARROW_ROUNDS):
