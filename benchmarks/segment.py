@@ -4,7 +4,8 @@ For each stage the first call includes XLA compilation, the second is the run al
 (`classify`: EM with priors, relaxation, MRF and bias field on a 2 mm sample, then mean-field sweeps on
 the 1 mm grid) is compared with the same algorithm in vectorised NumPy (float32, same iteration
 counts; timed for two iterations and extrapolated), and the ratio printed. Target: EM + MRF <= 20 s
-after compile. For MRI, `segment` then runs the layer split (`SegmentConfig.layer_split`, on for MRI:
+after compile. For MRI, `segment` then runs the marrow step (`SegmentConfig.marrow_inside_skull`: scalp the
+skull encloses given to the skull, and the EM again where there is any) and the layer split (`SegmentConfig.layer_split`, on for MRI:
 the CSF/skull change point in depth learnt from the scan, and the EM again); it is timed too, and so is
 the depth prior before it with --depth-prior (`SegmentConfig.depth_prior`, off by default since session
 16: CSF/skull priors by the atlas's profile in depth, and the EM again). The target applies to all EM
@@ -32,7 +33,9 @@ import numpy as np  # noqa: E402
 
 from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.segmentation import SegmentConfig, classify, default_atlas, register_atlas  # noqa: E402
-from jaxhead.segmentation.segment import _classify_all, _depth_prior, _em_data, _layer_split, _refine_warp, unmodelled_on_grid  # noqa: E402
+from jaxhead.segmentation.segment import (  # noqa: E402
+    _classify_all, _depth_prior, _em_data, _layer_split, _marrow_inside_skull, _refine_warp, unmodelled_on_grid,
+)
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
 
@@ -125,9 +128,18 @@ def main():
     if cfg.depth_prior_on():  # off by default since session 16 (--depth-prior)
         later.append(("depth prior", "CSF/skull priors by the atlas's profile in depth", _depth_prior,
                       lambda f: (vol, atlas, np.asarray(priors), unmodelled, pi, f[0], cfg)))
+    kept = {"priors": np.asarray(priors)}  # the priors the steps after the marrow step see (as in segment)
+
+    def marrow(*a):
+        kept["priors"], fit, summary = _marrow_inside_skull(*a)
+        return fit, summary
+
+    if cfg.marrow_inside_skull_on():  # on for MRI (skipped on voxels coarser than a table)
+        later.append(("marrow inside skull", "scalp the skull encloses given to the skull", marrow,
+                      lambda f: (vol, np.asarray(priors), unmodelled, pi, f, cfg)))
     if cfg.layer_split_on():  # on for MRI
         later.append(("layer split", "the CSF/skull change point in depth learnt from the scan", _layer_split,
-                      lambda f: (vol, np.asarray(priors), unmodelled, pi, f[:4], cfg)))
+                      lambda f: (vol, np.asarray(kept["priors"]), unmodelled, pi, f[:4], cfg)))
     for name, what, step, arguments in later:
         t = {}
         for key in ("1", "2"):
