@@ -1320,11 +1320,10 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
         labels = np.argmax(fit[0], axis=0)
         skull = labels == Tissue.SKULL
         inside = (labels == Tissue.SCALP) & ~total
-        if inside.any() and skull.any():
-            inside &= enclosed(skull, labels == Tissue.BACKGROUND)
-        else:  # no scalp, or no skull to enclose it
-            inside[...] = False
-        if not inside.any() or inside.sum() < MARROW_MIN_SHARE * skull.sum():
+        if not (skull.any() and inside.any()):  # no skull to enclose, or no scalp left to give it
+            break
+        inside &= enclosed(skull, labels == Tissue.BACKGROUND)
+        if inside.sum() < MARROW_MIN_SHARE * skull.sum():  # none, or speckle
             below = int(inside.sum())
             break
         moved.append(int(inside.sum()))
