@@ -7,9 +7,12 @@ import pytest
 
 from jaxhead.segmentation import SegmentConfig
 from jaxhead.segmentation.depth_prior import (
+    SPLIT_BINS,
     SPLIT_STEPS,
     SPLIT_TOL,
+    _bin_index,
     _block,
+    _log_ratio,
     density_log_ratio,
     fit_layer_split,
     layer_depth,
@@ -31,6 +34,21 @@ def test_density_log_ratio_is_the_analytic_gaussian_log_ratio():
     mid = (y > -1.0) & (y < 2.0)  # where both densities hold many samples
     assert np.abs(llr[mid] - exact[mid]).max() < 0.1
     assert np.all(density_log_ratio(np.ones(5), np.ones(5, bool), np.ones(5, bool), 1.0, 1.0) == 0)
+
+
+def test_density_bins_count_as_numpy_histogram_of_the_clipped_values():
+    """`fit_layer_split` bins the band's values once (`_bin_index`) and counts them per iteration; the counts
+    are np.histogram's of the values clipped to [lo, hi], edges and values outside included."""
+    rng = np.random.default_rng(3)
+    lo, hi = -1.0, 2.0
+    edges = np.linspace(lo, hi, SPLIT_BINS + 1)
+    y = np.concatenate([rng.normal(0.5, 1.5, 50_000), edges, [lo - 5.0, hi + 5.0, np.nextafter(hi, 0.0)]])
+    bins = _bin_index(y, lo, hi)
+    for m in (rng.random(len(y)) < 0.5, np.ones(len(y), bool)):
+        want, _ = np.histogram(np.clip(y[m], lo, hi), edges)
+        np.testing.assert_array_equal(np.bincount(bins[m], minlength=SPLIT_BINS), want)
+    inner = rng.random(len(y)) < 0.3
+    np.testing.assert_array_equal(_log_ratio(bins, inner, ~inner), density_log_ratio(y, inner, ~inner, lo, hi))
 
 
 def test_local_change_point_is_the_windowed_argmax_by_brute_force():

@@ -163,14 +163,25 @@ def density_log_ratio(y: np.ndarray, inner: np.ndarray, outer: np.ndarray, lo: f
     """
     if not hi > lo:
         return np.zeros(len(y))
+    return _log_ratio(_bin_index(y, lo, hi), inner, outer)
+
+
+def _bin_index(y: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Each value's bin of `density_log_ratio`'s histograms: SPLIT_BINS equal bins over [lo, hi] (the
+    last closed), values outside in the end bins; as `np.histogram` of the values clipped to [lo, hi]."""
     edges = np.linspace(lo, hi, SPLIT_BINS + 1)
+    return np.clip(np.searchsorted(edges, y, side="right") - 1, 0, SPLIT_BINS - 1)
+
+
+def _log_ratio(bins: np.ndarray, inner: np.ndarray, outer: np.ndarray) -> np.ndarray:
+    """`density_log_ratio` on the values' bins (`_bin_index`): counted once per call, not sorted and
+    searched again (`fit_layer_split` calls it once per iteration on the same values)."""
     dens = []
     for m in (inner, outer):
-        h, _ = np.histogram(np.clip(y[m], lo, hi), edges)
+        h = np.bincount(bins[m], minlength=SPLIT_BINS)
         h = ndimage.gaussian_filter1d(h + 1.0, SPLIT_SMOOTH_BINS, mode="nearest")  # +1: no empty bin
         dens.append(np.log(h / h.sum()))
-    idx = np.clip(np.searchsorted(edges, y, side="right") - 1, 0, SPLIT_BINS - 1)
-    return (dens[0] - dens[1])[idx]
+    return (dens[0] - dens[1])[bins]
 
 
 def _block(voxel_mm, sigma_mm: float) -> np.ndarray:
@@ -270,9 +281,10 @@ def fit_layer_split(y: np.ndarray, t: np.ndarray, band: np.ndarray, voxel_mm, si
     lo, hi = np.percentile(yb, [0.5, 99.5])
     inner = tb < 0.5
     layout, at = _change_point_layout(t, band, voxel_mm, sigma_mm), _coarse_coordinates(idx, voxel_mm, sigma_mm)
+    bins = _bin_index(yb, lo, hi) if hi > lo else None  # None: no contrast to learn, log ratio 0
     changed, it, coarse = 1.0, 0, None
     while changed >= SPLIT_TOL and it < SPLIT_MAX_ITER:
-        coarse = _change_point(layout, density_log_ratio(yb, inner, ~inner, lo, hi))
+        coarse = _change_point(layout, np.zeros(len(yb)) if bins is None else _log_ratio(bins, inner, ~inner))
         new = tb < ndimage.map_coordinates(coarse, at, order=1, mode="nearest")  # `upsample` at the band
         changed = float((new != inner).mean())
         inner, it = new, it + 1
