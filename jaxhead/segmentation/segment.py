@@ -1322,7 +1322,11 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
         inside = (labels == Tissue.SCALP) & ~total
         if not (skull.any() and inside.any()):  # no skull to enclose, or no scalp left to give it
             break
-        inside &= enclosed(skull, labels == Tissue.BACKGROUND)
+        bg = labels == Tissue.BACKGROUND
+        # background that tissue encloses (a compact table as dark as air, labelled background) is no way out
+        # for the marrow: it walls it like the skull; only background a ray can leave the grid through escapes
+        held = bg & enclosed(~bg, np.zeros_like(bg))
+        inside &= enclosed(skull | held, bg & ~held)
         if inside.sum() < MARROW_MIN_SHARE * skull.sum():  # none, or speckle
             below = int(inside.sum())
             break
