@@ -8,7 +8,7 @@ from scipy import ndimage
 from jaxhead.segmentation import SegmentConfig
 from jaxhead.segmentation.atlas import Atlas
 from jaxhead.segmentation.register import RegisterConfig
-from jaxhead.segmentation.segment import MARROW_MIN_SHARE, dice_scores, segment_reported
+from jaxhead.segmentation.segment import MARROW_MIN_SHARE, dice_scores, enclosed, marrow_enclosed, segment_reported
 from jaxhead.tissue import Tissue
 from jaxhead.volume import LabelMap, Volume
 
@@ -122,3 +122,34 @@ def test_skipped_and_said_so_on_voxels_coarser_than_a_table():
     report = seg.registration["marrow_inside_skull"]
     assert report["rounds"] == 0 and "MARROW_MAX_VOXEL_MM" in report["skipped"]
     np.testing.assert_array_equal(on.labels, off.labels)
+
+
+def _labels_with_dark_outer_table(channel: bool = False):
+    """Label map of nested shells (1 mm): brain to 12, CSF to 14, inner table (skull) to 16, marrow labelled
+    scalp to 19, an outer table labelled BACKGROUND (as dark as air) to 21, scalp to 26, air outside.
+    `channel`: a 3 x 3 voxel tube of air from the outer table straight out through the scalp."""
+    n = 60
+    i = np.arange(n) - (n - 1) / 2
+    r = np.sqrt(i[:, None, None] ** 2 + i[None, :, None] ** 2 + i[None, None, :] ** 2)
+    lab = _shells(r, [12, 14, 16, 19, 21, 26], [BRAIN, CSF, SKULL, SCALP, BG, SCALP, BG]).astype(np.uint8)
+    if channel:
+        c = n // 2
+        tube = (slice(c - 1, c + 2), slice(c - 1, c + 2), slice(c, n))
+        lab[tube] = np.where(r[tube] >= 19, BG, lab[tube])
+    return lab, r
+
+
+def test_marrow_enclosed_walls_background_the_head_encloses():
+    """The marrow's rays outward meet the outer table labelled background: background, but enclosed by the
+    scalp, so it walls the marrow as the skull does; the scalp outside the table stays outside."""
+    lab, r = _labels_with_dark_outer_table()
+    marrow, scalp = (r >= 16) & (r < 19), (r >= 21) & (r < 26)
+    inside = marrow_enclosed(lab)
+    assert inside[marrow].all() and not inside[scalp].any()
+    # with background as the way out wherever it lies, the dark table would let every marrow voxel escape
+    assert not enclosed(lab == SKULL, lab == BG)[marrow].any()
+    # a channel of air from the table to the outside: the table is no longer all walled, and the marrow
+    # whose rays run out through it escapes; the rest stays enclosed
+    lab_c, _ = _labels_with_dark_outer_table(channel=True)
+    inside_c = marrow_enclosed(lab_c)
+    assert 0.5 < inside_c[marrow].mean() < 1.0 and not inside_c[scalp].any()
