@@ -34,8 +34,7 @@ from segmentation_accuracy import HEADS  # noqa: E402
 
 import jaxhead.segmentation.segment  # noqa: E402,F401
 from jaxhead.segmentation import SegmentConfig, default_atlas  # noqa: E402
-from jaxhead.segmentation.atlas import anatomy_atlas, with_proportions  # noqa: E402
-from jaxhead.segmentation.em import bias_field  # noqa: E402
+from jaxhead.segmentation.atlas import anatomy_atlas  # noqa: E402
 from jaxhead.segmentation.templates import (  # noqa: E402
     ants_anatomy, fatty_marrow, mni152_anatomy, random_contrast, render, with_diploe)
 from jaxhead.tissue import Tissue  # noqa: E402
@@ -52,18 +51,15 @@ def mirror_step(threshold: str, outer_scalp: bool, given_back: list):
         if summary.get("rounds", 0) == 0:  # no marrow moved: nothing taught the skull the marrow's intensity
             given_back.append(0)
             return priors, fit, summary
-        post, res, opts, coords = fit[:4]
+        post, res, opts = fit[:3]
         labels = np.argmax(post, axis=0)
-        denoise = seg.DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
-        y, _ = seg._em_data_noise(volume, cfg.modality, denoise)
-        if opts.bias_degree > 0:
-            y = y - np.asarray(bias_field(res.params.bias, coords, opts.bias_degree), dtype=np.float64)
+        y = seg.corrected_em_data(volume, fit, cfg)
         means = np.sort(np.asarray(res.params.means)[np.asarray(opts.component_class) == int(Tissue.SKULL)])
         cut = 0.5 * (means[-2] + means[-1]) if threshold == "top2" else 0.5 * (means[0] + means[-1])
         skull = labels == Tissue.SKULL
         bright = skull & (y >= cut)
         bg = labels == Tissue.BACKGROUND
-        held = bg & seg.enclosed(~bg, np.zeros_like(bg))
+        held = seg.enclosed_background(labels)
         wall = (skull & ~bright) | held | (labels == Tissue.CSF) | (labels == Tissue.BRAIN)
         scalp = labels == Tissue.SCALP
         if outer_scalp:
@@ -71,11 +67,8 @@ def mirror_step(threshold: str, outer_scalp: bool, given_back: list):
         out = bright & ~seg.enclosed(wall, scalp | (bg & ~held))
         given_back.append(int(out.sum()))
         priors = np.array(priors, np.float32, copy=True)
-        priors[Tissue.SCALP][out] += priors[Tissue.SKULL][out]
-        priors[Tissue.SKULL][out] = 0.0
-        first = with_proportions(priors, unmodelled, pi) if pi is not None else priors
-        new = seg._classify(volume, first, cfg, init=res.params)
-        return priors, new[:4] + (pi,) + new[5:], summary
+        fit = seg._refit_with_prior_moved(volume, priors, out, Tissue.SKULL, Tissue.SCALP, unmodelled, pi, fit, cfg)
+        return priors, fit, summary
 
     return step
 

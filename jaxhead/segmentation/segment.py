@@ -1331,15 +1331,40 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
             break
         moved.append(int(inside.sum()))
         total |= inside
-        priors[Tissue.SKULL][inside] += priors[Tissue.SCALP][inside]
-        priors[Tissue.SCALP][inside] = 0.0
-        first = with_proportions(priors, unmodelled, pi) if pi is not None else priors
-        new = _classify(volume, first, cfg, init=fit[1].params)
-        fit = new[:4] + (pi,) + new[5:]
+        fit = _refit_with_prior_moved(volume, priors, inside, Tissue.SCALP, Tissue.SKULL, unmodelled, pi, fit, cfg)
     summary = dict(rounds=len(moved), voxels_per_round=moved, voxels=int(total.sum()), left_below_share=below,
                    min_share=MARROW_MIN_SHARE, seconds=round(time.perf_counter() - t0, 1))
     log.info("segment (%s): scalp enclosed by the skull given to the skull: %s", cfg.modality, summary)
     return priors, fit, summary
+
+
+def _refit_with_prior_moved(volume: Volume, priors: np.ndarray, mask, src: Tissue, dst: Tissue, unmodelled, pi, fit,
+                            cfg: SegmentConfig):
+    """Move class `src`'s prior to class `dst` at `mask` (in place in `priors`, float32) and run the EM again from
+    `fit`'s parameters, the learnt proportions `pi` (None: none) kept. Returns `_classify_all`'s output."""
+    priors[dst][mask] += priors[src][mask]
+    priors[src][mask] = 0.0
+    first = with_proportions(priors, unmodelled, pi) if pi is not None else priors
+    new = _classify(volume, first, cfg, init=fit[1].params)
+    return new[:4] + (pi,) + new[5:]
+
+
+def enclosed_background(labels: np.ndarray) -> np.ndarray:
+    """Background voxels that tissue encloses (every one of the 26 grid rays meets a non-background voxel before
+    the grid's edge, `enclosed`): bone as dark as air, say, not air a ray can leave the head through."""
+    bg = np.asarray(labels) == Tissue.BACKGROUND
+    return bg & enclosed(~bg, np.zeros_like(bg))
+
+
+def corrected_em_data(volume: Volume, fit, cfg: SegmentConfig) -> np.ndarray:
+    """The EM's data of `volume` (`_em_data_noise`, denoised as `cfg` says) less the bias field of `fit`
+    ((posteriors, EMResult, EMOptions, coords, ...)), float64: what the fitted Gaussian means describe."""
+    _, res, opts, coords = fit[:4]
+    denoise = DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
+    y, _ = _em_data_noise(volume, cfg.modality, denoise)
+    if opts.bias_degree > 0:
+        y = y - np.asarray(bias_field(res.params.bias, coords, opts.bias_degree), dtype=np.float64)
+    return y
 
 
 def marrow_enclosed(labels: np.ndarray) -> np.ndarray:
@@ -1354,9 +1379,8 @@ def marrow_enclosed(labels: np.ndarray) -> np.ndarray:
         (x, y, z) boolean.
     """
     labels = np.asarray(labels)
-    bg = labels == Tissue.BACKGROUND
-    held = bg & enclosed(~bg, np.zeros_like(bg))
-    return (labels == Tissue.SCALP) & enclosed((labels == Tissue.SKULL) | held, bg & ~held)
+    held = enclosed_background(labels)
+    return (labels == Tissue.SCALP) & enclosed((labels == Tissue.SKULL) | held, (labels == Tissue.BACKGROUND) & ~held)
 
 
 def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: SegmentConfig):
@@ -1369,10 +1393,7 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     post, res, opts, coords = fit
     labels = np.argmax(post, axis=0)
     _brain_and_scalp(labels, "layer_split")
-    denoise = DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
-    y, _ = _em_data_noise(volume, cfg.modality, denoise)
-    if opts.bias_degree > 0:
-        y = y - np.asarray(bias_field(res.params.bias, coords, opts.bias_degree), dtype=np.float64)
+    y = corrected_em_data(volume, fit, cfg)
     vox = voxel_sizes(volume.affine)
     t = layer_depth(labels == Tissue.BRAIN, labels == Tissue.SCALP, vox)
     band = (labels == Tissue.CSF) | (labels == Tissue.SKULL)
