@@ -1308,9 +1308,13 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
     """Scalp-labelled voxels that the segmented skull encloses (`marrow_enclosed`) get their
     scalp prior moved to skull, and the EM runs again from the last fit; repeated while the newly enclosed
     voxels are at least MARROW_MIN_SHARE of the skull-labelled ones, at most MARROW_ROUNDS times
-    (DEFAULT_MARROW_INSIDE_SKULL's comment). `fit` is `_classify_all`'s output, `pi` the proportions learnt
-    where the atlas models no bone (None: none), kept. Returns (the priors, without those proportions
-    applied, for the later steps; the fit; summary for the run report)."""
+    (DEFAULT_MARROW_INSIDE_SKULL's comment). Then the mirror: once the skull class has a fat-bright Gaussian
+    (`tables_cut`), skull-labelled voxels as bright as it that the tables do not enclose
+    (`bright_skull_outside_tables`: scalp fat, not marrow) get their skull prior moved to scalp and the EM runs
+    again from its own start, if they are at least MARROW_MIN_SHARE of the skull-labelled voxels. `fit` is
+    `_classify_all`'s output, `pi` the proportions learnt where the atlas models no bone (None: none), kept.
+    Returns (the priors, without those proportions applied, for the later steps; the fit; summary for the run
+    report)."""
     t0 = time.perf_counter()
     vox = float(np.max(voxel_sizes(volume.affine)))
     if vox > MARROW_MAX_VOXEL_MM:
@@ -1332,20 +1336,32 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
         moved.append(int(inside.sum()))
         total |= inside
         fit = _refit_with_prior_moved(volume, priors, inside, Tissue.SCALP, Tissue.SKULL, unmodelled, pi, fit, cfg)
+    given_back, cut = 0, tables_cut(fit)
+    if cut is not None:  # the skull class has learnt a marrow's fat: scalp fat beside the outer table may have too
+        labels = np.argmax(fit[0], axis=0)
+        out = bright_skull_outside_tables(labels, corrected_em_data(volume, fit, cfg), cut)
+        if out.sum() >= MARROW_MIN_SHARE * (labels == Tissue.SKULL).sum():
+            given_back = int(out.sum())
+            # from the EM's own start: the skull's fat-bright Gaussian may have described only this fat, and
+            # started from it, it drifts to the brightest voxels the skull's prior still reaches (white matter)
+            fit = _refit_with_prior_moved(volume, priors, out, Tissue.SKULL, Tissue.SCALP, unmodelled, pi, fit, cfg,
+                                          fresh=True)
     summary = dict(rounds=len(moved), voxels_per_round=moved, voxels=int(total.sum()), left_below_share=below,
-                   min_share=MARROW_MIN_SHARE, seconds=round(time.perf_counter() - t0, 1))
+                   min_share=MARROW_MIN_SHARE, given_back_to_scalp=given_back,
+                   seconds=round(time.perf_counter() - t0, 1))
     log.info("segment (%s): scalp enclosed by the skull given to the skull: %s", cfg.modality, summary)
     return priors, fit, summary
 
 
 def _refit_with_prior_moved(volume: Volume, priors: np.ndarray, mask, src: Tissue, dst: Tissue, unmodelled, pi, fit,
-                            cfg: SegmentConfig):
+                            cfg: SegmentConfig, fresh: bool = False):
     """Move class `src`'s prior to class `dst` at `mask` (in place in `priors`, float32) and run the EM again from
-    `fit`'s parameters, the learnt proportions `pi` (None: none) kept. Returns `_classify_all`'s output."""
+    `fit`'s parameters (`fresh`: from the EM's own start on the new priors), the learnt proportions `pi` (None:
+    none) kept. Returns `_classify_all`'s output."""
     priors[dst][mask] += priors[src][mask]
     priors[src][mask] = 0.0
     first = with_proportions(priors, unmodelled, pi) if pi is not None else priors
-    new = _classify(volume, first, cfg, init=fit[1].params)
+    new = _classify(volume, first, cfg, init=None if fresh else fit[1].params)
     return new[:4] + (pi,) + new[5:]
 
 
@@ -1379,8 +1395,55 @@ def marrow_enclosed(labels: np.ndarray) -> np.ndarray:
         (x, y, z) boolean.
     """
     labels = np.asarray(labels)
-    held = enclosed_background(labels)
+    return _marrow_enclosed(labels, enclosed_background(labels))
+
+
+def _marrow_enclosed(labels: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """`marrow_enclosed` with the background that tissue encloses (`enclosed_background(labels)`) given."""
     return (labels == Tissue.SCALP) & enclosed((labels == Tissue.SKULL) | held, (labels == Tissue.BACKGROUND) & ~held)
+
+
+def tables_cut(fit) -> float | None:
+    """The intensity (bias-corrected EM data) between a skull's compact tables and its fat-bright marrow: the
+    midpoint of the skull class's darkest and brightest Gaussian means of `fit` ((posteriors, EMResult,
+    EMOptions, ...)). None unless the skull class has learnt a fat-bright marrow: its brightest Gaussian is
+    brighter than the brain class's darkest (T1: fat, 0.8-1.4 of white matter, is brighter than grey matter,
+    0.55-0.8, templates.MRI_CONTRAST_RANGE; compact bone and its partial volumes are darker). Gaussians
+    below MARROW_MIN_SHARE of their class's weight are not counted."""
+    _, res, opts = fit[:3]
+    means, weights = np.asarray(res.params.means), np.asarray(res.params.weights)
+    cls = np.asarray(opts.component_class)
+    live = weights >= MARROW_MIN_SHARE
+    skull, brain = means[live & (cls == int(Tissue.SKULL))], means[live & (cls == int(Tissue.BRAIN))]
+    if skull.size < 2 or brain.size == 0 or skull.max() <= brain.min():
+        return None
+    return 0.5 * float(skull.min() + skull.max())
+
+
+def bright_skull_outside_tables(labels: np.ndarray, y: np.ndarray, cut: float | None) -> np.ndarray:
+    """Skull-labelled voxels at least as bright as `cut` (`tables_cut`) that the skull's tables do not enclose:
+    scalp fat that the skull class took once it learnt the marrow's fat (`marrow_inside_skull`'s second half).
+    A voxel is given back when one of its 26 grid rays (`enclosed`) reaches the way out before a wall. Walls:
+    skull darker than `cut` (the tables), CSF, brain, background that tissue encloses. Way out: scalp that the
+    skull does not enclose (`marrow_enclosed`'s complement: not marrow) and background that leads out of the
+    grid. Marrow between two tables stays skull; fat outside the outer table goes.
+
+    Arguments:
+        labels: (x, y, z) Tissue labels.
+        y: (x, y, z) intensities on the scale of `cut`.
+        cut: the tables' upper bound (None: nothing is given back).
+    Returns:
+        (x, y, z) boolean.
+    """
+    labels = np.asarray(labels)
+    skull = labels == Tissue.SKULL
+    if cut is None or not skull.any():
+        return np.zeros(labels.shape, bool)
+    bright = skull & (np.asarray(y) >= cut)
+    held = enclosed_background(labels)
+    wall = (skull & ~bright) | held | (labels == Tissue.CSF) | (labels == Tissue.BRAIN)
+    way_out = ((labels == Tissue.SCALP) & ~_marrow_enclosed(labels, held)) | ((labels == Tissue.BACKGROUND) & ~held)
+    return bright & ~enclosed(wall, way_out)
 
 
 def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: SegmentConfig):
