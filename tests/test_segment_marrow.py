@@ -1,6 +1,7 @@
 """`marrow_inside_skull` (MRI): an adult's fat-bright marrow that a misplaced atlas calls scalp goes back to
 the skull because the skull's tables enclose it; where nothing is enclosed the step changes nothing."""
 
+import jax
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -83,6 +84,16 @@ def _atlas_halves(skull_outer_mm=(25.0, 31.0), blur_mm: float = 3.0):
 CFG = dict(modality="mri", register=RegisterConfig(bspline=False), check_registration=False, layer_split=False)
 
 
+def _same_labels(a: LabelMap, b: LabelMap) -> None:
+    """Two runs of one computation: the same labels to the voxel on the CPU. On a GPU two identical runs may
+    differ (reductions in no fixed order, so an EM may stop an iteration apart): on an H200 (session 25) 1 voxel
+    of 592,704 and 14 of 74,088; up to 1 in 10^3 pass there."""
+    if jax.default_backend() == "cpu":
+        np.testing.assert_array_equal(a.labels, b.labels)
+    else:
+        assert (a.labels != b.labels).mean() < 1e-3
+
+
 @pytest.mark.parametrize("marrow_inside_skull", [False, True])
 def test_fatty_marrow_the_atlas_calls_scalp_goes_back_to_the_skull(marrow_inside_skull):
     vol, truth = _scan(marrow=True)
@@ -109,15 +120,15 @@ def test_fatty_marrow_the_atlas_calls_scalp_goes_back_to_the_skull(marrow_inside
 def test_nothing_enclosed_nothing_changed():
     """A skull of dark bone (no marrow) under a right atlas: at most noise speckle of scalp lies inside the
     skull (below MARROW_MIN_SHARE of it), so the step moves nothing and the labels are those with it off,
-    to the voxel."""
+    to the voxel (`_same_labels`)."""
     vol, truth = _scan(marrow=False)
     atlas = _atlas(skull_outer_mm=29.0)
     on, seg = segment_reported(vol, atlas, SegmentConfig(**CFG))
     off, _ = segment_reported(vol, atlas, SegmentConfig(**CFG, marrow_inside_skull=False))
     report = seg.registration["marrow_inside_skull"]
-    assert report["voxels"] == 0 and report["rounds"] == 0
+    assert report["voxels"] == 0 and report["rounds"] == 0 and report["given_back_to_scalp"] == 0
     assert report["left_below_share"] < MARROW_MIN_SHARE * (on.labels == SKULL).sum()
-    np.testing.assert_array_equal(on.labels, off.labels)
+    _same_labels(on, off)
     assert dice_scores(on, truth)["skull"] > 0.9
 
 
@@ -141,7 +152,7 @@ def test_skipped_and_said_so_on_voxels_coarser_than_a_table():
     off, _ = segment_reported(coarse, atlas, SegmentConfig(**CFG, marrow_inside_skull=False))
     report = seg.registration["marrow_inside_skull"]
     assert report["rounds"] == 0 and "MARROW_MAX_VOXEL_MM" in report["skipped"]
-    np.testing.assert_array_equal(on.labels, off.labels)
+    _same_labels(on, off)
 
 
 def _labels_with_dark_outer_table(channel: bool = False):
