@@ -1,6 +1,8 @@
 """`marrow_inside_skull` (MRI): an adult's fat-bright marrow that a misplaced atlas calls scalp goes back to
 the skull because the skull's tables enclose it; where nothing is enclosed the step changes nothing."""
 
+from types import SimpleNamespace
+
 import jax
 import numpy as np
 import pytest
@@ -10,7 +12,7 @@ from jaxhead.segmentation import SegmentConfig
 from jaxhead.segmentation.atlas import Atlas
 from jaxhead.segmentation.register import RegisterConfig
 from jaxhead.segmentation.segment import (MARROW_MIN_SHARE, bright_skull_outside_tables, dice_scores, enclosed,
-                                          marrow_enclosed, segment_reported)
+                                          marrow_enclosed, segment_reported, tables_cut)
 from jaxhead.tissue import Tissue
 from jaxhead.volume import LabelMap, Volume
 
@@ -256,3 +258,24 @@ def test_bright_skull_outside_tables_is_the_fat_not_the_marrow(outer_table):
     lab[tube] = np.where((r[tube] >= 19) & (r[tube] < 24), SCALP, lab[tube])
     out = bright_skull_outside_tables(lab, y, cut)
     assert 0.0 < out[marrow].mean() < 0.5 and out[fat & (lab == SKULL)].all()
+
+
+def _fit_with(gaussians):
+    """A stand-in for a fit's (posteriors, EMResult, EMOptions): `gaussians` is [(class, mean, weight), ...]."""
+    cls, means, weights = (np.array(v) for v in zip(*gaussians))
+    res = SimpleNamespace(params=SimpleNamespace(means=means, weights=weights))
+    return None, res, SimpleNamespace(component_class=cls)
+
+
+def test_tables_cut_only_for_a_skull_with_a_fat_bright_gaussian():
+    """The cut is the midpoint of the skull's darkest and brightest means once its brightest is brighter than
+    the brain's darkest (log T1: bone -2.1, grey matter -0.4, fat 0.1); a skull of dark Gaussians only (bone,
+    bone with CSF), a fat-bright one below MARROW_MIN_SHARE of the class's weight, or one skull Gaussian: None."""
+    brain = [(BRAIN, -0.4, 0.6), (BRAIN, 0.0, 0.4)]
+    assert tables_cut(_fit_with(brain + [(SKULL, -2.1, 0.4), (SKULL, 0.1, 0.6)])) == pytest.approx(-1.0)
+    assert tables_cut(_fit_with(brain + [(SKULL, -2.1, 0.4), (SKULL, -1.2, 0.6)])) is None
+    assert tables_cut(_fit_with(brain + [(SKULL, -2.1, 0.995), (SKULL, 0.1, 0.005)])) is None
+    assert tables_cut(_fit_with(brain + [(SKULL, 0.1, 1.0)])) is None
+    # a brain Gaussian that has emptied is not the brain's darkest: counted, it would let a skull Gaussian
+    # darker than all the brain's live ones pass as fat
+    assert tables_cut(_fit_with([(BRAIN, -0.4, 0.0), (BRAIN, 0.2, 1.0), (SKULL, -2.1, 0.5), (SKULL, 0.1, 0.5)])) is None
