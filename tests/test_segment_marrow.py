@@ -252,8 +252,18 @@ def test_bright_skull_outside_tables_is_the_fat_not_the_marrow(outer_table):
     marrow, fat = (r >= 16) & (r < 19), (r >= 21) & (r < 24)
     assert out[fat].all() and not out[marrow].any() and not out[~fat].any()
     assert not bright_skull_outside_tables(lab, y, None).any()
-    # a channel of scalp through the outer table and the fat: marrow whose rays reach it is no longer walled
+    # a one-voxel hole through the outer table, as bright as the marrow (partial volume): the tables' growth by
+    # a voxel closes it and the marrow stays; the hole's voxels touch the marrow and stay too
     c = lab.shape[0] // 2
+    line = (c, c, slice(c, None))
+    y_hole = y.copy()
+    y_hole[line] = np.where((r[line] >= 19) & (r[line] < 21), T1["fat"], y[line])
+    if outer_table == SKULL:
+        out_hole = bright_skull_outside_tables(lab, y_hole, cut)
+        hole = np.zeros(lab.shape, bool)
+        hole[line] = (r[line] >= 19) & (r[line] < 21)
+        assert not out_hole[marrow | hole].any() and out_hole[fat].all()
+    # a channel of scalp through the outer table and the fat: marrow whose rays reach it is no longer walled
     tube = (slice(c - 1, c + 2), slice(c - 1, c + 2), slice(c, None))
     lab[tube] = np.where((r[tube] >= 19) & (r[tube] < 24), SCALP, lab[tube])
     out = bright_skull_outside_tables(lab, y, cut)
