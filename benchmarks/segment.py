@@ -34,7 +34,8 @@ import numpy as np  # noqa: E402
 from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.segmentation import SegmentConfig, classify, default_atlas, register_atlas  # noqa: E402
 from jaxhead.segmentation.segment import (  # noqa: E402
-    _classify_all, _depth_prior, _em_data, _layer_split, _marrow_inside_skull, _refine_warp, unmodelled_on_grid,
+    _classify_all, _depth_prior, _em_data, _layer_split, _marrow_inside_skull, _refine_warp, sample_stride,
+    unmodelled_on_grid,
 )
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
@@ -162,7 +163,7 @@ def main():
         print("Dice brain, csf, skull, scalp after the warp refinement:", np.round(dice, 3).tolist())
 
     # NumPy baseline of the same EM: time 2 iterations on the sample grid and 2 sweeps on the full grid
-    stride = tuple(int(max(1, round(cfg.em_sample_mm / v))) for v in voxel_sizes(vol.affine))
+    stride = sample_stride(cfg.em_sample_mm, voxel_sizes(vol.affine))
     y = _em_data(vol, args.modality).astype(np.float32)
     pri = np.asarray(priors, dtype=np.float32)
     pri = (pri + 1e-4) / (pri + 1e-4).sum(0, keepdims=True)

@@ -10,7 +10,7 @@ import pytest
 
 from jaxhead.phantom import make_head, make_population
 from jaxhead.segmentation import (
-    Atlas, RegisterConfig, SegmentConfig, build_atlas, cache_dir, check_orientation, default_atlas, segment,
+    Atlas, RegisterConfig, SegmentConfig, build_atlas, cache_dir, check_orientation, classify, default_atlas, segment,
     segment_reported,
 )
 from jaxhead.segmentation.atlas import ATLAS_VERSION, DEFAULT_ATLAS_SEED
@@ -170,3 +170,30 @@ def test_orientation_check_does_not_judge_the_left_right_mirror(monkeypatch):
     monkeypatch.setattr(seg_mod, "orientation_scores", scores(np.diag([1.0, 1.0, -1.0])))  # upside down
     with pytest.raises(ValueError, match="mis-oriented"):
         check_orientation(vol, atlas)
+
+
+def test_em_sample_stride_is_the_largest_within_the_sampling_distance():
+    """`sample_stride`: the largest k with k x voxel <= em_sample_mm (at least 1), robust to an affine's rounding;
+    the old rule round(2 mm / voxel) is reproduced at 1, 2 and 4 mm with em_sample_mm = 2."""
+    seg = importlib.import_module("jaxhead.segmentation.segment")
+    assert SegmentConfig().em_sample_mm == 3.0  # SPM's sampling distance
+    assert seg.sample_stride(3.0, (1.0, 1.0, 1.0)) == (3, 3, 3)
+    assert seg.sample_stride(3.0, (2.0, 1.5, 4.0)) == (1, 2, 1)
+    assert seg.sample_stride(3.0, (1.0000001, 0.9999999, 2.0000001)) == (3, 3, 1)
+    for v in (1.0, 2.0, 4.0):
+        assert seg.sample_stride(2.0, (v,) * 3) == (max(1, round(2.0 / v)),) * 3
+    rng = np.random.default_rng(0)
+    for s, v in zip(rng.uniform(0.5, 6.0, 200), rng.uniform(0.3, 5.0, 200)):
+        (k,) = set(seg.sample_stride(s, (v, v, v)))
+        assert k >= 1 and (k == 1 or k * v <= s * (1 + 1e-6)) and (k + 1) * v > s
+
+
+def test_classify_fits_on_the_strided_sample():
+    """The EM's fit runs on every k-th voxel (`sample_stride`), the posteriors come back on the full grid."""
+    rng = np.random.default_rng(1)
+    vol = Volume(rng.normal(100.0, 10.0, (48, 40, 30)) + 200.0 * (np.arange(48) > 24)[:, None, None], np.eye(4))
+    priors = np.full((5, 48, 40, 30), 0.2)
+    for mm, sample in ((3.0, (16, 16, 16)), (2.0, (24, 24, 16))):  # the grid padded to a multiple of 8 strides
+        post, res, _, _ = classify(vol, priors, SegmentConfig(modality="mri", em_sample_mm=mm, bias_degree=0))
+        assert res.posteriors.shape[1:] == sample and post.shape == (5, 48, 40, 30)
+        np.testing.assert_allclose(post.sum(0), 1.0, atol=1e-5)

@@ -399,7 +399,9 @@ class SegmentConfig:
         max_iter: EM iterations at most.
         tol: EM stops when the mean log-likelihood per voxel (standardised intensities) changes by
             less than this (nats).
-        em_sample_mm: the EM estimates its parameters on every k-th voxel, k = round(this / voxel).
+        em_sample_mm: the EM estimates its parameters on every k-th voxel along each axis, k the largest
+            whole number with k x voxel <= this, at least 1 (`sample_stride`). 3 mm is SPM's sampling
+            distance: every 3rd voxel at 1 mm, every voxel at 2 mm.
         sweeps: mean-field sweeps on the full grid after an EM on a strided sample of it.
         precision: "float32" (default, see module docstring) or "float64".
         atlas: the default atlas used when `segment` gets none: "mni152" (real anatomy: the ICBM
@@ -486,7 +488,7 @@ class SegmentConfig:
     bias_degree: int | None = None
     max_iter: int = 50
     tol: float = 1e-4
-    em_sample_mm: float = 2.0
+    em_sample_mm: float = 3.0
     sweeps: int = 3
     precision: Literal["float32", "float64"] = "float32"
     atlas: Literal["mni152", "phantom"] = "mni152"
@@ -1105,6 +1107,19 @@ def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     return post, res, opts, coords, pi, sample
 
 
+def sample_stride(em_sample_mm: float, voxel_mm) -> tuple[int, ...]:
+    """The EM sample's stride per axis (`SegmentConfig.em_sample_mm`): the largest whole k with k x voxel <=
+    `em_sample_mm` (a relative slack of 1e-6 for affines' rounding), at least 1.
+
+    Arguments:
+        em_sample_mm: the largest sampling distance, mm (> 0).
+        voxel_mm: the grid's voxel sizes (3,), mm.
+    Returns:
+        (3,) strides.
+    """
+    return tuple(max(1, int(np.floor(em_sample_mm / float(v) * (1 + 1e-6)))) for v in voxel_mm)
+
+
 def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=None):
     """`classify` with one set of priors. With `unmodelled` (a first pass), the proportions of
     UNMODELLED_CLASSES in that region instead of the posteriors (None): `atlas.regional_proportions`
@@ -1117,7 +1132,7 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=
     quantiles of the scan (`em.fit_mixture`)."""
     dtype = _dtype(cfg)
     vox = voxel_sizes(volume.affine)
-    stride = tuple(int(max(1, round(cfg.em_sample_mm / v))) for v in vox)
+    stride = sample_stride(cfg.em_sample_mm, vox)
     # Pad the grid (edge values: air) up to a multiple of 8 strided voxels so that scans of similar
     # size share compiled code; the padding is cropped off the results.
     shape = volume.shape
