@@ -306,6 +306,15 @@ DEFAULT_MARROW_INSIDE_SKULL = {"mri": True, "ct": False}
 #: voxels are at least MARROW_MIN_SHARE of the skull-labelled ones (MNI152 head, 1 mm, 8 %: 73k, 20k, 5k
 #: enclosed in the first three rounds).
 MARROW_ROUNDS = 3
+#: `csf_inside_tables`: off by default (opt-in since session 26, not yet measured on every table). Where a
+#: child's red marrow is as dark as CSF on T1 (the MNI152 head's random contrast 1: CSF 0.38, marrow 0.42 of
+#: white matter), the skull class learns the marrow's intensity and takes the CSF beside the brain too (1 mm,
+#: 3 %: 352k of 456k CSF voxels labelled skull; the marrow itself is skull). CSF lies inside the inner table,
+#: the marrow between the tables: skull-labelled voxels brighter than the tables from which a grid ray
+#: reaches the brain or CSF before a wall are CSF (`bright_skull_inside_tables`). Measured at 1 mm on those
+#: two scans (experiments/results/segmentation_csf_inside_tables.md): CSF 0.307 -> 0.829 (3 %) and
+#: 0.279 -> 0.744 (8 %), skull 0.793 -> 0.935 and 0.771 -> 0.887.
+DEFAULT_CSF_INSIDE_TABLES = {"mri": False, "ct": False}
 #: `marrow_inside_skull` runs only on scans whose coarsest voxel side is at most this (mm): a compact table is
 #: 1-2 mm thick (templates.DIPLOE_TABLE_MM: 1.5), and the skull encloses the marrow only where the tables are
 #: labelled skull. Measured (experiments/results/segmentation_marrow_inside_skull.md): at 1 mm it gives the
@@ -400,8 +409,9 @@ class SegmentConfig:
         tol: EM stops when the mean log-likelihood per voxel (standardised intensities) changes by
             less than this (nats).
         em_sample_mm: the EM estimates its parameters on every k-th voxel along each axis, k the largest
-            whole number with k x voxel <= this, at least 1 (`sample_stride`). 3 mm is SPM's sampling
-            distance: every 3rd voxel at 1 mm, every voxel at 2 mm.
+            whole number with k x voxel <= this, at least 1 (`sample_stride`): every 2nd voxel at 1 mm, every
+            voxel at 2 mm. 3 mm (SPM's sampling distance) halves the EM's cost at 1 mm but was measured to
+            cost a met row (experiments/results/segmentation_em_sample.md).
         sweeps: mean-field sweeps on the full grid after an EM on a strided sample of it.
         precision: "float32" (default, see module docstring) or "float64".
         atlas: the default atlas used when `segment` gets none: "mni152" (real anatomy: the ICBM
@@ -468,6 +478,11 @@ class SegmentConfig:
             again, up to MARROW_ROUNDS times (DEFAULT_MARROW_INSIDE_SKULL's comment: an adult's marrow is
             as bright as fat); skipped, and said so in the report, on voxels coarser than
             MARROW_MAX_VOXEL_MM. None: the modality default (on for MRI); True with a CT is an error.
+        csf_inside_tables: MRI: after the marrow step and again after the layer split, skull-labelled voxels
+            brighter than the skull's tables from which a grid ray reaches the brain or CSF before a wall
+            (`bright_skull_inside_tables`: CSF the skull class took with a marrow as dark as CSF) get the
+            CSF's prior and the EM runs again; skipped on voxels coarser than MARROW_MAX_VOXEL_MM. None: the
+            modality default (DEFAULT_CSF_INSIDE_TABLES: off); True with a CT is an error.
         unmodelled_start: where the atlas models no bone (`Atlas.unmodelled`: the mni152 atlas's face
             and neck), the skull and scalp shares the first EM starts from, before their proportions
             are learnt from the scan (`classify`): "equal" (half each) or "atlas" (the atlas's
@@ -488,7 +503,7 @@ class SegmentConfig:
     bias_degree: int | None = None
     max_iter: int = 50
     tol: float = 1e-4
-    em_sample_mm: float = 3.0
+    em_sample_mm: float = 2.0
     sweeps: int = 3
     precision: Literal["float32", "float64"] = "float32"
     atlas: Literal["mni152", "phantom"] = "mni152"
@@ -511,6 +526,7 @@ class SegmentConfig:
     depth_prior: bool | None = None
     layer_split: bool | None = None
     marrow_inside_skull: bool | None = None
+    csf_inside_tables: bool | None = None
     unmodelled_start: Literal["equal", "atlas"] | None = None
 
     def __post_init__(self):
@@ -602,6 +618,8 @@ class SegmentConfig:
         _check_modality_switch("marrow_inside_skull", self.marrow_inside_skull, self.modality, "mri",
                                "(T1: fatty marrow as bright as the scalp's fat); on CT the bone is bright and "
                                "`scalp_outside_skull` relabels scalp inside the skull.")
+        _check_modality_switch("csf_inside_tables", self.csf_inside_tables, self.modality, "mri",
+                               "(T1: a marrow as dark as CSF); on CT the bone is bright.")
         if self.unmodelled_start is not None and self.unmodelled_start not in UNMODELLED_STARTS:
             raise ValueError(
                 f"[segment] `unmodelled_start` must be one of {UNMODELLED_STARTS} (the first EM's skull/scalp "
@@ -633,6 +651,12 @@ class SegmentConfig:
     def layer_split_on(self) -> bool:
         """Whether the CSF/skull split is learnt from the scan (`layer_split`, or the modality default)."""
         return DEFAULT_LAYER_SPLIT[self.modality] if self.layer_split is None else bool(self.layer_split)
+
+    def csf_inside_tables_on(self) -> bool:
+        """Whether bright skull inside the tables goes to CSF (`csf_inside_tables`, or the modality default)."""
+        if self.csf_inside_tables is None:
+            return DEFAULT_CSF_INSIDE_TABLES[self.modality]
+        return bool(self.csf_inside_tables)
 
     def marrow_inside_skull_on(self) -> bool:
         """Whether scalp the skull encloses is given to the skull (`marrow_inside_skull`, or the modality default)."""
@@ -1231,9 +1255,18 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
     if cfg.marrow_inside_skull_on():
         priors, (post, res, opts, coords, pi, sample), summary["marrow_inside_skull"] = _marrow_inside_skull(
             volume, np.asarray(priors), unmodelled, pi, (post, res, opts, coords, pi, sample), cfg)
+    if cfg.csf_inside_tables_on():
+        priors = np.array(priors, np.float32, copy=True)
+        (post, res, opts, coords, pi, sample), inside = _csf_inside_tables(
+            volume, priors, unmodelled, pi, (post, res, opts, coords, pi, sample), cfg)
+        summary["csf_inside_tables"] = {"before_layer_split": inside}
     if cfg.layer_split_on():
-        (post, res, opts, coords, pi, sample), summary["layer_split"] = _layer_split(
-            volume, np.asarray(priors), unmodelled, pi, (post, res, opts, coords), cfg)
+        (post, res, opts, coords, pi, sample), summary["layer_split"], split_priors = _layer_split(
+            volume, np.asarray(priors), unmodelled, pi, (post, res, opts, coords), cfg, return_priors=True)
+        if cfg.csf_inside_tables_on():  # the split shares CSF + skull afresh by depth: look again after it
+            (post, res, opts, coords, _, sample), inside = _csf_inside_tables(
+                volume, split_priors, None, None, (post, res, opts, coords, pi, sample), cfg)
+            summary["csf_inside_tables"]["after_layer_split"] = inside
     if cfg.modality == "ct" and cfg.bone_majority:
         post, info = bone_majority(np.asarray(volume.data), post)
         summary["bone_majority"] = {k: round(v, 1) for k, v in info.items()}
@@ -1424,6 +1457,65 @@ def _marrow_enclosed(labels: np.ndarray, held: np.ndarray) -> np.ndarray:
     return (labels == Tissue.SCALP) & enclosed((labels == Tissue.SKULL) | held, (labels == Tissue.BACKGROUND) & ~held)
 
 
+def _csf_inside_tables(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: SegmentConfig):
+    """`csf_inside_tables` once: skull-labelled voxels of `fit` that `bright_skull_inside_tables` finds (cut:
+    `skull_cut`) get their skull prior moved to CSF (in place in `priors`, float32) and the EM runs again from
+    `fit`'s parameters, if they are at least MARROW_MIN_SHARE of the skull-labelled voxels. `unmodelled`, `pi`:
+    the learnt proportions to apply to `priors` (None: applied already, or none). Returns (`_classify_all`'s
+    output, or `fit` unchanged; summary for the run report)."""
+    vox = float(np.max(voxel_sizes(volume.affine)))
+    if vox > MARROW_MAX_VOXEL_MM:
+        return fit, dict(voxels=0, skipped=f"voxels of {vox:.3g} mm, coarser than a compact table "
+                         f"({MARROW_MAX_VOXEL_MM} mm, MARROW_MAX_VOXEL_MM)")
+    cut = skull_cut(fit)
+    if cut is None:
+        return fit, dict(voxels=0, skipped="the skull class has fewer than two Gaussians with weight")
+    labels = np.argmax(fit[0], axis=0)
+    out = bright_skull_inside_tables(labels, corrected_em_data(volume, fit, cfg), cut)
+    n, n_skull = int(out.sum()), int((labels == Tissue.SKULL).sum())
+    summary = dict(cut=round(cut, 4), found=n, skull_voxels=n_skull, min_share=MARROW_MIN_SHARE, voxels=0)
+    if n >= MARROW_MIN_SHARE * n_skull and n > 0:
+        fit = _refit_with_prior_moved(volume, priors, out, Tissue.SKULL, Tissue.CSF, unmodelled, pi, fit, cfg)
+        summary["voxels"] = n
+    log.info("segment (%s): bright skull inside the tables given to CSF: %s", cfg.modality, summary)
+    return fit, summary
+
+
+def skull_cut(fit) -> float | None:
+    """The midpoint of the skull class's darkest and brightest Gaussian means of `fit` ((posteriors, EMResult,
+    EMOptions, ...)), in the EM's data units: between the compact tables and whatever else the skull class
+    describes (a marrow, or tissue it took). None with fewer than two Gaussians of at least MARROW_MIN_SHARE of
+    the class's weight."""
+    _, res, opts = fit[:3]
+    means, weights = np.asarray(res.params.means), np.asarray(res.params.weights)
+    skull = means[(weights >= MARROW_MIN_SHARE) & (np.asarray(opts.component_class) == int(Tissue.SKULL))]
+    return None if skull.size < 2 else 0.5 * float(skull.min() + skull.max())
+
+
+def bright_skull_inside_tables(labels: np.ndarray, y: np.ndarray, cut: float | None) -> np.ndarray:
+    """Skull-labelled voxels at least as bright as `cut` from which one of the 26 grid rays (`enclosed`) reaches
+    brain or CSF before a wall: CSF that the skull class took (`csf_inside_tables`). The rays pass only through
+    such bright skull; everything else is a wall: the tables (skull darker than `cut`, grown by one voxel
+    within the skull, as in `bright_skull_outside_tables`), scalp, background. A marrow between intact tables
+    stays skull; bright skull on the brain's side of the inner table goes.
+
+    Arguments:
+        labels: (x, y, z) Tissue labels.
+        y: (x, y, z) intensities on the scale of `cut`.
+        cut: the tables' upper bound (`skull_cut`; None: nothing is found).
+    Returns:
+        (x, y, z) boolean.
+    """
+    labels = np.asarray(labels)
+    skull = labels == Tissue.SKULL
+    if cut is None or not skull.any():
+        return np.zeros(labels.shape, bool)
+    tables = ndimage.binary_dilation(skull & (np.asarray(y) < cut), np.ones((3, 3, 3), bool)) & skull
+    bright = skull & ~tables
+    inside = (labels == Tissue.BRAIN) | (labels == Tissue.CSF)
+    return bright & ~enclosed(~bright & ~inside, inside)
+
+
 def tables_cut(fit) -> float | None:
     """The intensity (bias-corrected EM data) between a skull's compact tables and its fat-bright marrow: the
     midpoint of the skull class's darkest and brightest Gaussian means of `fit` ((posteriors, EMResult,
@@ -1479,12 +1571,14 @@ def bright_skull_outside_tables(labels: np.ndarray, y: np.ndarray, cut: float | 
     return out | (rim & ndimage.binary_dilation(out, cube) & ~ndimage.binary_dilation(marrow, cube))
 
 
-def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: SegmentConfig):
+def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: SegmentConfig,
+                 return_priors: bool = False):
     """The EM again on priors whose CSF/skull split is a step at the change point in depth learnt from
     the scan (`depth_prior.fit_layer_split` on the bias-corrected EM data, in the CSF + skull band of
     `fit`; `with_local_split`), after the learnt proportions `pi` (None: none) where the atlas models no
     bone. `fit` is (posteriors, EMResult, EMOptions, coords). Returns (`_classify_all`'s output,
-    summary for the run report)."""
+    summary for the run report), and with `return_priors` the priors its EM ran on (float32, the proportions
+    applied)."""
     t0 = time.perf_counter()
     post, res, opts, coords = fit
     labels = np.argmax(post, axis=0)
@@ -1505,13 +1599,14 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     p_skull = float(np.asarray(priors[Tissue.SKULL])[band].sum(dtype=np.float64))  # of the whole grid
     summary["atlas_csf_fraction"] = round(p_csf / max(p_csf + p_skull, 1e-30), 4)
     # started from the first EM's fit (only the CSF/skull priors changed): fewer iterations than from quantiles
-    new = _classify(volume, with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH), cfg, init=res.params)
+    split_priors = with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH)
+    new = _classify(volume, split_priors, cfg, init=res.params)
     new = new[:4] + (pi,) + new[5:]
     summary.update(window_mm=LAYER_SPLIT_MM, width=LAYER_SPLIT_WIDTH,
                    relabelled_fraction=round(float((np.argmax(new[0], axis=0) != labels).mean()), 4),
                    seconds=round(time.perf_counter() - t0, 1))
     log.info("segment (%s): CSF/skull split learnt from the scan's band: %s", cfg.modality, summary)
-    return new, summary
+    return (new, summary, split_priors) if return_priors else (new, summary)
 
 
 def config_atlas(cfg: SegmentConfig) -> Atlas:
