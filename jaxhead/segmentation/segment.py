@@ -1486,10 +1486,27 @@ def skull_cut(fit) -> float | None:
     EMOptions, ...)), in the EM's data units: between the compact tables and whatever else the skull class
     describes (a marrow, or tissue it took). None with fewer than two Gaussians of at least MARROW_MIN_SHARE of
     the class's weight."""
+    skull = _live_means(fit, Tissue.SKULL)
+    return None if skull.size < 2 else 0.5 * float(skull.min() + skull.max())
+
+
+def _live_means(fit, cls: Tissue) -> np.ndarray:
+    """The means of class `cls`'s Gaussians in `fit` ((posteriors, EMResult, EMOptions, ...)) with at least
+    MARROW_MIN_SHARE of the class's weight."""
     _, res, opts = fit[:3]
     means, weights = np.asarray(res.params.means), np.asarray(res.params.weights)
-    skull = means[(weights >= MARROW_MIN_SHARE) & (np.asarray(opts.component_class) == int(Tissue.SKULL))]
-    return None if skull.size < 2 else 0.5 * float(skull.min() + skull.max())
+    return means[(weights >= MARROW_MIN_SHARE) & (np.asarray(opts.component_class) == int(cls))]
+
+
+def _grown_tables(labels: np.ndarray, y, cut: float | None):
+    """(skull, dark, tables) of `labels`: the skull-labelled voxels, those darker than `cut`, and those grown by
+    one voxel (26-neighbourhood) within the skull: the compact tables, their one-voxel holes closed. None when
+    `cut` is None or nothing is labelled skull."""
+    skull = labels == Tissue.SKULL
+    if cut is None or not skull.any():
+        return None
+    dark = skull & (np.asarray(y) < cut)
+    return skull, dark, ndimage.binary_dilation(dark, np.ones((3, 3, 3), bool)) & skull
 
 
 def bright_skull_inside_tables(labels: np.ndarray, y: np.ndarray, cut: float | None) -> np.ndarray:
@@ -1507,10 +1524,9 @@ def bright_skull_inside_tables(labels: np.ndarray, y: np.ndarray, cut: float | N
         (x, y, z) boolean.
     """
     labels = np.asarray(labels)
-    skull = labels == Tissue.SKULL
-    if cut is None or not skull.any():
+    if (split := _grown_tables(labels, y, cut)) is None:
         return np.zeros(labels.shape, bool)
-    tables = ndimage.binary_dilation(skull & (np.asarray(y) < cut), np.ones((3, 3, 3), bool)) & skull
+    skull, _, tables = split
     bright = skull & ~tables
     inside = (labels == Tissue.BRAIN) | (labels == Tissue.CSF)
     return bright & ~enclosed(~bright & ~inside, inside)
@@ -1523,11 +1539,7 @@ def tables_cut(fit) -> float | None:
     brighter than the brain class's darkest (T1: fat, 0.8-1.4 of white matter, is brighter than grey matter,
     0.55-0.8, templates.MRI_CONTRAST_RANGE; compact bone and its partial volumes are darker). Gaussians
     below MARROW_MIN_SHARE of their class's weight are not counted."""
-    _, res, opts = fit[:3]
-    means, weights = np.asarray(res.params.means), np.asarray(res.params.weights)
-    cls = np.asarray(opts.component_class)
-    live = weights >= MARROW_MIN_SHARE
-    skull, brain = means[live & (cls == int(Tissue.SKULL))], means[live & (cls == int(Tissue.BRAIN))]
+    skull, brain = _live_means(fit, Tissue.SKULL), _live_means(fit, Tissue.BRAIN)
     if skull.size < 2 or brain.size == 0 or skull.max() <= brain.min():
         return None
     return 0.5 * float(skull.min() + skull.max())
@@ -1554,12 +1566,10 @@ def bright_skull_outside_tables(labels: np.ndarray, y: np.ndarray, cut: float | 
         (x, y, z) boolean.
     """
     labels = np.asarray(labels)
-    skull = labels == Tissue.SKULL
-    if cut is None or not skull.any():
+    if (split := _grown_tables(labels, y, cut)) is None:
         return np.zeros(labels.shape, bool)
+    skull, dark, tables = split
     cube = np.ones((3, 3, 3), bool)
-    dark = skull & (np.asarray(y) < cut)
-    tables = ndimage.binary_dilation(dark, cube) & skull
     held = enclosed_background(labels)
     wall = tables | held | (labels == Tissue.CSF) | (labels == Tissue.BRAIN)
     way_out = ((labels == Tissue.SCALP) & ~_marrow_enclosed(labels, held)) | ((labels == Tissue.BACKGROUND) & ~held)
