@@ -408,10 +408,10 @@ class SegmentConfig:
         max_iter: EM iterations at most.
         tol: EM stops when the mean log-likelihood per voxel (standardised intensities) changes by
             less than this (nats).
-        em_sample_mm: the EM estimates its parameters on every k-th voxel along each axis, k the largest
-            whole number with k x voxel <= this, at least 1 (`sample_stride`): every 2nd voxel at 1 mm, every
-            voxel at 2 mm. 3 mm (SPM's sampling distance) halves the EM's cost at 1 mm but was measured to
-            cost a met row (experiments/results/segmentation_em_sample.md).
+        em_sample_mm: the EM estimates its parameters on every k-th voxel along each axis, k this over the
+            voxel size rounded, at least 1 (`sample_stride`): every 2nd voxel at 1 mm, every voxel at 2 mm.
+            3 mm (SPM's sampling distance) halves the EM's cost at 1 mm but was measured to cost a met row
+            (experiments/results/segmentation_em_sample.md).
         sweeps: mean-field sweeps on the full grid after an EM on a strided sample of it.
         precision: "float32" (default, see module docstring) or "float64".
         atlas: the default atlas used when `segment` gets none: "mni152" (real anatomy: the ICBM
@@ -1132,16 +1132,17 @@ def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
 
 
 def sample_stride(em_sample_mm: float, voxel_mm) -> tuple[int, ...]:
-    """The EM sample's stride per axis (`SegmentConfig.em_sample_mm`): the largest whole k with k x voxel <=
-    `em_sample_mm` (a relative slack of 1e-6 for affines' rounding), at least 1.
+    """The EM sample's stride per axis (`SegmentConfig.em_sample_mm`): em_sample_mm / voxel rounded to the nearest
+    whole number (Python's `round`: a tie goes to the even one), at least 1. With 2 mm: 2 at 1 mm and at 1.2 mm,
+    1 at 1.5, 2 and 4 mm, 3 at 0.7 mm.
 
     Arguments:
-        em_sample_mm: the largest sampling distance, mm (> 0).
+        em_sample_mm: the sampling distance, mm (> 0).
         voxel_mm: the grid's voxel sizes (3,), mm.
     Returns:
         (3,) strides.
     """
-    return tuple(max(1, int(np.floor(em_sample_mm / float(v) * (1 + 1e-6)))) for v in voxel_mm)
+    return tuple(max(1, int(round(em_sample_mm / float(v)))) for v in voxel_mm)
 
 
 def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=None):
