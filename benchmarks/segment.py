@@ -8,14 +8,16 @@ after compile. For MRI, `segment` then runs the marrow step (`SegmentConfig.marr
 skull encloses given to the skull, and the EM again where there is any) and the layer split (`SegmentConfig.layer_split`, on for MRI:
 the CSF/skull change point in depth learnt from the scan, and the EM again); it is timed too, and so is
 the depth prior before it with --depth-prior (`SegmentConfig.depth_prior`, off by default since session
-16: CSF/skull priors by the atlas's profile in depth, and the EM again). The target applies to all EM
+16: CSF/skull priors by the atlas's profile in depth, and the EM again), and with --csf-inside-tables
+`SegmentConfig.csf_inside_tables` (off by default: bright skull inside the tables given to CSF, and the EM
+again where there is any, after the marrow step and after the layer split). The target applies to all EM
 stages together.
 
 With --refine-warp N the warp refinement on the EM's likelihood (`SegmentConfig.refine_warp`: N
 refinements, each followed by a new EM) is timed after the EM, first call and after compile.
 
 Usage: .venv/bin/python benchmarks/segment.py [--modality mri] [--seed 22] [--atlas mni152] [--refine-warp 1]
-       [--depth-prior]
+       [--depth-prior] [--csf-inside-tables]
 (seed 22 is a phantom head that fits the 181 x 217 x 181 grid without its neck.)
 """
 
@@ -34,8 +36,8 @@ import numpy as np  # noqa: E402
 from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.segmentation import SegmentConfig, classify, default_atlas, register_atlas  # noqa: E402
 from jaxhead.segmentation.segment import (  # noqa: E402
-    _classify_all, _depth_prior, _em_data, _layer_split, _marrow_inside_skull, _refine_warp, sample_stride,
-    unmodelled_on_grid,
+    _classify_all, _csf_inside_tables, _depth_prior, _em_data, _layer_split, _marrow_inside_skull, _refine_warp,
+    sample_stride, unmodelled_on_grid,
 )
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
@@ -94,6 +96,8 @@ def main():
                    help="default atlas: real anatomy (mni152, the product default) or the phantom atlas")
     p.add_argument("--refine-warp", type=int, default=0, help="also time this many rounds of warp refinement")
     p.add_argument("--depth-prior", action="store_true", help="MRI: run the depth prior before the layer split")
+    p.add_argument("--csf-inside-tables", action="store_true",
+                   help="MRI: time SegmentConfig.csf_inside_tables too (off by default), before and after the split")
     args = p.parse_args()
 
     print(f"jax {jax.__version__}, devices {jax.devices()}")
@@ -104,7 +108,8 @@ def main():
     atlas = default_atlas(args.modality, atlas=args.atlas)
     print(f"default atlas {atlas.name!r} {atlas.shape} ({atlas.n_subjects} subjects): {time.perf_counter() - t:.1f} s "
           "(cached after the first use)")
-    cfg = SegmentConfig(modality=args.modality, atlas=args.atlas, depth_prior=True if args.depth_prior else None)
+    cfg = SegmentConfig(modality=args.modality, atlas=args.atlas, depth_prior=True if args.depth_prior else None,
+                        csf_inside_tables=True if args.csf_inside_tables else None)
 
     print(_load())
     (tr, priors), t_reg1 = _timed(register_atlas, vol, atlas, cfg, key="reg1")
@@ -132,15 +137,30 @@ def main():
     kept = {"priors": np.asarray(priors)}  # the priors the steps after the marrow step see (as in segment)
 
     def marrow(*a):
-        kept["priors"], fit, summary = _marrow_inside_skull(*a)
+        kept["marrow"], fit, summary = _marrow_inside_skull(*a)
+        kept["priors"] = kept["marrow"]
+        return fit, summary
+
+    def csf_before(*a):  # on a fresh copy of the marrow step's priors each call (the step moves them in place)
+        kept["priors"] = np.array(kept.get("marrow", priors), np.float32, copy=True)
+        return _csf_inside_tables(a[0], kept["priors"], *a[1:])
+
+    def split(*a):
+        fit, summary, kept["split"] = _layer_split(*a, return_priors=True)
         return fit, summary
 
     if cfg.marrow_inside_skull_on():  # on for MRI (skipped on voxels coarser than a table)
         later.append(("marrow inside skull", "scalp the skull encloses given to the skull", marrow,
                       lambda f: (vol, np.asarray(priors), unmodelled, pi, f, cfg)))
+    if cfg.csf_inside_tables_on():  # off by default (--csf-inside-tables)
+        later.append(("csf inside tables", "bright skull inside the tables given to CSF", csf_before,
+                      lambda f: (vol, unmodelled, pi, f, cfg)))
     if cfg.layer_split_on():  # on for MRI
-        later.append(("layer split", "the CSF/skull change point in depth learnt from the scan", _layer_split,
+        later.append(("layer split", "the CSF/skull change point in depth learnt from the scan", split,
                       lambda f: (vol, np.asarray(kept["priors"]), unmodelled, pi, f[:4], cfg)))
+        if cfg.csf_inside_tables_on():
+            later.append(("csf inside tables after the split", "again, on the split's priors", _csf_inside_tables,
+                          lambda f: (vol, np.array(kept["split"], np.float32, copy=True), None, None, f, cfg)))
     for name, what, step, arguments in later:
         t = {}
         for key in ("1", "2"):
