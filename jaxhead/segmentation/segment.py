@@ -312,8 +312,9 @@ MARROW_ROUNDS = 3
 #: 3 %: 352k of 456k CSF voxels labelled skull; the marrow itself is skull). CSF lies inside the inner table,
 #: the marrow between the tables: skull-labelled voxels brighter than the tables from which a grid ray
 #: reaches the brain or CSF before a wall are CSF (`bright_skull_inside_tables`). Measured at 1 mm on those
-#: two scans (experiments/results/segmentation_csf_inside_tables.md): CSF 0.307 -> 0.829 (3 %) and
-#: 0.279 -> 0.744 (8 %), skull 0.793 -> 0.935 and 0.771 -> 0.887.
+#: two scans (experiments/results/segmentation_csf_inside_tables.md): CSF 0.298 -> 0.805 (3 %) and
+#: 0.286 -> 0.727 (8 %), skull 0.793 -> 0.932 and 0.773 -> 0.881; every other scan of the child's-marrow table
+#: within 0.017. Off until the no-marrow and adult-marrow tables and its cost are weighed (the write-up).
 DEFAULT_CSF_INSIDE_TABLES = {"mri": False, "ct": False}
 #: `marrow_inside_skull` runs only on scans whose coarsest voxel side is at most this (mm): a compact table is
 #: 1-2 mm thick (templates.DIPLOE_TABLE_MM: 1.5), and the skull encloses the marrow only where the tables are
