@@ -1263,11 +1263,13 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
             volume, priors, unmodelled, pi, (post, res, opts, coords, pi, sample), cfg)
         summary["csf_inside_tables"] = {"before_layer_split": inside}
     if cfg.layer_split_on():
-        (post, res, opts, coords, pi, sample), summary["layer_split"], split_priors = _layer_split(
-            volume, np.asarray(priors), unmodelled, pi, (post, res, opts, coords), cfg, return_priors=True)
+        # the split's priors are kept only for csf_inside_tables (5 x the grid in float32: 140 MB at 1 mm)
+        split = _layer_split(volume, np.asarray(priors), unmodelled, pi, (post, res, opts, coords), cfg,
+                             return_priors=cfg.csf_inside_tables_on())
+        (post, res, opts, coords, pi, sample), summary["layer_split"] = split[:2]
         if cfg.csf_inside_tables_on():  # the split shares CSF + skull afresh by depth: look again after it
             (post, res, opts, coords, _, sample), inside = _csf_inside_tables(
-                volume, split_priors, None, None, (post, res, opts, coords, pi, sample), cfg)
+                volume, split[2], None, None, (post, res, opts, coords, pi, sample), cfg)
             summary["csf_inside_tables"]["after_layer_split"] = inside
     if cfg.modality == "ct" and cfg.bone_majority:
         post, info = bone_majority(np.asarray(volume.data), post)
@@ -1544,7 +1546,7 @@ def tables_cut(fit) -> float | None:
     skull, brain = _live_means(fit, Tissue.SKULL), _live_means(fit, Tissue.BRAIN)
     if skull.size < 2 or brain.size == 0 or skull.max() <= brain.min():
         return None
-    return 0.5 * float(skull.min() + skull.max())
+    return skull_cut(fit)
 
 
 def bright_skull_outside_tables(labels: np.ndarray, y: np.ndarray, cut: float | None) -> np.ndarray:
