@@ -12,8 +12,8 @@ import pytest
 from test_segment_marrow import CFG, T1, _atlas, _same_labels, _scan, _shells
 
 from jaxhead.segmentation import SegmentConfig
-from jaxhead.segmentation.segment import (MARROW_MIN_SHARE, bright_skull_inside_tables, segment_reported,
-                                          skull_cut)
+from jaxhead.segmentation.segment import (MARROW_MIN_SHARE, bright_skull_inside_tables, csf_inside_cut,
+                                          segment_reported, skull_cut)
 from jaxhead.tissue import Tissue
 
 BG, BRAIN, CSF, SKULL, SCALP = (int(t) for t in Tissue)
@@ -73,6 +73,17 @@ def test_skull_cut_is_the_midpoint_of_the_skull_gaussians_with_weight():
     assert skull_cut(_fit_with(brain + [(SKULL, -2.1, 0.3), (SKULL, -0.9, 0.7), (SKULL, 0.1, 0.0)])) == \
         pytest.approx(-1.5)  # an emptied Gaussian is not counted
     assert skull_cut(_fit_with(brain + [(SKULL, -2.1, 1.0), (SKULL, -0.9, 0.5 * MARROW_MIN_SHARE)])) is None
+
+
+def test_csf_inside_cut_only_where_every_skull_gaussian_is_darker_than_the_brain():
+    brain = [(BRAIN, -0.4, 0.6), (BRAIN, 0.0, 0.4)]
+    child = brain + [(SKULL, -2.1, 0.3), (SKULL, -0.9, 0.7)]  # the marrow's Gaussian below the brain: CSF-like
+    assert csf_inside_cut(_fit_with(child)) == pytest.approx(skull_cut(_fit_with(child)))
+    adult = brain + [(SKULL, -2.3, 0.5), (SKULL, -1.6, 0.3), (SKULL, 0.2, 0.2)]  # a fat-bright marrow
+    assert skull_cut(_fit_with(adult)) is not None and csf_inside_cut(_fit_with(adult)) is None
+    assert csf_inside_cut(_fit_with(child + [(SKULL, 0.2, 0.5 * MARROW_MIN_SHARE)])) == pytest.approx(-1.5)
+    assert csf_inside_cut(_fit_with(brain + [(SKULL, -2.1, 1.0)])) is None  # one Gaussian: no cut
+    assert csf_inside_cut(_fit_with([(SKULL, -2.1, 0.3), (SKULL, -0.9, 0.7)])) is None  # no brain Gaussian
 
 
 def test_segment_config_csf_inside_tables():
