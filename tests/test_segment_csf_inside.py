@@ -87,8 +87,9 @@ def test_csf_inside_cut_only_where_every_skull_gaussian_is_darker_than_the_brain
 
 
 def test_segment_config_csf_inside_tables():
-    assert not SegmentConfig(modality="mri").csf_inside_tables_on()  # opt-in
-    assert SegmentConfig(modality="mri", csf_inside_tables=True).csf_inside_tables_on()
+    assert SegmentConfig(modality="mri").csf_inside_tables_on()  # on for MRI since session 27
+    assert not SegmentConfig(modality="mri", csf_inside_tables=False).csf_inside_tables_on()
+    assert not SegmentConfig(modality="ct").csf_inside_tables_on()
     with pytest.raises(ValueError, match="csf_inside_tables.*modality='mri'"):
         SegmentConfig(modality="ct", csf_inside_tables=True)
 
@@ -101,7 +102,7 @@ def test_on_a_segmented_scan_reported_and_coarse_voxels_skipped():
     atlas = _atlas(skull_outer_mm=29.0)
     cfg = {**CFG, "layer_split": True}
     on, seg = segment_reported(vol, atlas, SegmentConfig(**cfg, csf_inside_tables=True))
-    off, _ = segment_reported(vol, atlas, SegmentConfig(**cfg))
+    off, _ = segment_reported(vol, atlas, SegmentConfig(**cfg, csf_inside_tables=False))
     report = seg.registration["csf_inside_tables"]
     assert set(report) == {"before_layer_split", "after_layer_split"}
     for step in report.values():

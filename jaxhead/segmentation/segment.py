@@ -306,16 +306,18 @@ DEFAULT_MARROW_INSIDE_SKULL = {"mri": True, "ct": False}
 #: voxels are at least MARROW_MIN_SHARE of the skull-labelled ones (MNI152 head, 1 mm, 8 %: 73k, 20k, 5k
 #: enclosed in the first three rounds).
 MARROW_ROUNDS = 3
-#: `csf_inside_tables`: off by default (opt-in since session 26, not yet measured on every table). Where a
-#: child's red marrow is as dark as CSF on T1 (the MNI152 head's random contrast 1: CSF 0.38, marrow 0.42 of
-#: white matter), the skull class learns the marrow's intensity and takes the CSF beside the brain too (1 mm,
-#: 3 %: 352k of 456k CSF voxels labelled skull; the marrow itself is skull). CSF lies inside the inner table,
-#: the marrow between the tables: skull-labelled voxels brighter than the tables from which a grid ray
-#: reaches the brain or CSF before a wall are CSF (`bright_skull_inside_tables`). Measured at 1 mm on those
-#: two scans (experiments/results/segmentation_csf_inside_tables.md): CSF 0.298 -> 0.805 (3 %) and
-#: 0.286 -> 0.727 (8 %), skull 0.793 -> 0.932 and 0.773 -> 0.881; every other scan of the child's-marrow table
-#: within 0.017. Off until the no-marrow and adult-marrow tables and its cost are weighed (the write-up).
-DEFAULT_CSF_INSIDE_TABLES = {"mri": False, "ct": False}
+#: `csf_inside_tables`: on for MRI since session 27. Where a child's red marrow is as dark as CSF on T1 (the
+#: MNI152 head's random contrast 1: CSF 0.38, marrow 0.42 of white matter), the skull class learns the
+#: marrow's intensity and takes the CSF beside the brain too (1 mm, 3 %: 352k of 456k CSF voxels labelled
+#: skull; the marrow itself is skull). CSF lies inside the inner table, the marrow between the tables:
+#: skull-labelled voxels brighter than the tables from which a grid ray reaches the brain or CSF before a wall
+#: are CSF (`bright_skull_inside_tables`), where every skull Gaussian is darker than the brain's darkest
+#: (`csf_inside_cut`: a fat-bright Gaussian is an adult's marrow, not CSF). Measured on the three 1 mm MRI
+#: tables (experiments/results/segmentation_csf_inside_tables.md): child's marrow, MNI152 head CSF
+#: 0.298 -> 0.805 (3 %) and 0.286 -> 0.727 (8 %), skull 0.793 -> 0.932 and 0.773 -> 0.881, the 3 % row met;
+#: adult marrow over four contrasts: every real-head scan unchanged (ungated, one lost its skull: 0.882 ->
+#: 0.384); no marrow: see the write-up. The phantom family's scans move by at most 0.019.
+DEFAULT_CSF_INSIDE_TABLES = {"mri": True, "ct": False}
 #: `marrow_inside_skull` runs only on scans whose coarsest voxel side is at most this (mm): a compact table is
 #: 1-2 mm thick (templates.DIPLOE_TABLE_MM: 1.5), and the skull encloses the marrow only where the tables are
 #: labelled skull. Measured (experiments/results/segmentation_marrow_inside_skull.md): at 1 mm it gives the
@@ -482,8 +484,9 @@ class SegmentConfig:
         csf_inside_tables: MRI: after the marrow step and again after the layer split, skull-labelled voxels
             brighter than the skull's tables from which a grid ray reaches the brain or CSF before a wall
             (`bright_skull_inside_tables`: CSF the skull class took with a marrow as dark as CSF) get the
-            CSF's prior and the EM runs again; skipped on voxels coarser than MARROW_MAX_VOXEL_MM. None: the
-            modality default (DEFAULT_CSF_INSIDE_TABLES: off); True with a CT is an error.
+            CSF's prior and the EM runs again, where every skull Gaussian is darker than the brain's darkest
+            (`csf_inside_cut`); skipped on voxels coarser than MARROW_MAX_VOXEL_MM. None: the modality
+            default (DEFAULT_CSF_INSIDE_TABLES: on for MRI); True with a CT is an error.
         unmodelled_start: where the atlas models no bone (`Atlas.unmodelled`: the mni152 atlas's face
             and neck), the skull and scalp shares the first EM starts from, before their proportions
             are learnt from the scan (`classify`): "equal" (half each) or "atlas" (the atlas's
