@@ -19,8 +19,9 @@ refinements, each followed by a new EM) is timed after the EM, first call and af
 The head (--head): "ants" (the default since session 27), the ANTs 19.5-year head of ../shared/data/heads
 (`JAXHEAD_HEADS`), real anatomy that the default mni152 atlas never saw, rendered as the accuracy table renders
 it (`templates.render`: 3 % noise, bias up to +-20 %, default contrast; with --marrow adult, the default, a
-diploe as bright as fat, an adult's; child: the darker red marrow; none: one skull intensity) and fitted to the
-181 x 217 x 181 grid (padded with air at the sides, its neck cut below the top 181 mm); or "phantom", a
+diploe as bright as fat, an adult's; child: the darker red marrow; none: one skull intensity) and placed on the
+181 x 217 x 181 grid as a scan's field of view (`templates.on_scan_grid`: centred, 5 mm of air above the
+top of the head, the neck cut below); or "phantom", a
 jaxhead phantom head (--seed 22 fits the grid without its neck), the benchmark's input before session 27. On the
 phantom the mni152 atlas puts its face inside the phantom's round cranium, the marrow step then encloses
 ~510k voxels and runs the EM twice: the phantom times a chain that misfires, the ANTs head one that works.
@@ -43,7 +44,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxhead.phantom import make_head  # noqa: E402
-from jaxhead.segmentation.templates import Anatomy, ants_anatomy, fatty_marrow, render, with_diploe  # noqa: E402
+from jaxhead.segmentation.templates import ants_anatomy, fatty_marrow, on_scan_grid, render, with_diploe  # noqa: E402
 from jaxhead.segmentation import SegmentConfig, classify, default_atlas, register_atlas  # noqa: E402
 from jaxhead.segmentation.segment import (  # noqa: E402
     _classify_all, _csf_inside_tables, _depth_prior, _em_data, _layer_split, _marrow_inside_skull, _refine_warp,
@@ -77,40 +78,13 @@ def _load():
     return "load average " + ", ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
-def fitted(anatomy: Anatomy, shape) -> Anatomy:
-    """`anatomy` on a grid of `shape` with the same voxels: padded with air (half on each side) where it is
-    smaller, cropped where it is larger (x, y: the middle; z: the top kept, the neck cut)."""
-    src, dst, offset = [], [], np.zeros(3)
-    for axis, (n, m) in enumerate(zip(anatomy.shape, shape)):
-        if n >= m:
-            start = n - m if axis == 2 else (n - m) // 2
-            src.append(slice(start, start + m)); dst.append(slice(0, m)); offset[axis] = start
-        else:
-            pad = (m - n) // 2
-            src.append(slice(0, n)); dst.append(slice(pad, pad + n)); offset[axis] = -pad
-    src, dst = tuple(src), tuple(dst)
-
-    def moved(a, fill):
-        out = np.full(a.shape[:-3] + tuple(shape), fill, a.dtype)
-        out[(Ellipsis,) + dst] = a[(Ellipsis,) + src]
-        return out
-
-    fractions = moved(np.asarray(anatomy.fractions), 0.0)
-    fractions[0][fractions.sum(0) == 0] = 1.0  # the padding is air
-    affine = np.array(anatomy.affine, np.float64, copy=True)
-    affine[:3, 3] = affine[:3, :3] @ offset + affine[:3, 3]
-    extra = (None if a is None else moved(np.asarray(a), 0.0) for a in (anatomy.t1, anatomy.unmodelled_bone,
-                                                                           anatomy.diploe))
-    return Anatomy(fractions, affine, anatomy.name + " (fitted to the grid)", *extra)
-
-
 def benchmark_head(args, shape=(181, 217, 181)):
     """(volume, truth labels) of the head the benchmark segments (module docstring)."""
     if args.head == "phantom":
         vol, truth = make_head(args.modality, shape=shape, voxel_mm=1.0, seed=args.seed, neck=False)
         return vol, truth.labels
     anat = ants_anatomy(args.heads)
-    anat = fitted((with_diploe(anat) if args.marrow != "none" else anat).resampled(1.0), shape)
+    anat = on_scan_grid((with_diploe(anat) if args.marrow != "none" else anat).resampled(1.0), shape)
     contrast = fatty_marrow(None) if args.marrow == "adult" and args.modality == "mri" else None
     vol = render(anat, args.modality, contrast=contrast, noise=0.03 if args.modality == "mri" else 5.0,
                  bias=0.2 if args.modality == "mri" else 0.0, seed=0)

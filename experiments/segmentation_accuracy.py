@@ -44,7 +44,7 @@ from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.segmentation import SegmentConfig, default_atlas, segment_reported  # noqa: E402
 from jaxhead.segmentation.atlas import anatomy_atlas  # noqa: E402
 from jaxhead.segmentation.templates import (  # noqa: E402
-    ants_anatomy, fatty_marrow, mni152_anatomy, random_contrast, render, with_diploe)
+    ants_anatomy, fatty_marrow, mni152_anatomy, on_scan_grid, random_contrast, render, with_diploe)
 from jaxhead.tissue import TISSUES  # noqa: E402
 
 log = logging.getLogger("segmentation_accuracy")
@@ -68,7 +68,7 @@ def dice_per_tissue(labels: np.ndarray, truth: np.ndarray) -> dict[str, float]:
 
 
 def cases(modality: str, voxel_mm: float, n_seeds: int, heads: Path, self_atlas: bool = False,
-          diploe: bool = False, fatty: bool = False):
+          diploe: bool = False, fatty: bool = False, fov_mm=None):
     """(anatomy, atlas, noise, contrast, volume, truth) for every scan of one modality.
 
     self_atlas: the control that is *not* held out: each anatomy with an atlas built from itself (the
@@ -80,6 +80,10 @@ def cases(modality: str, voxel_mm: float, n_seeds: int, heads: Path, self_atlas:
     are unchanged (built without one).
     fatty: with `diploe`, MRI only: the real heads' marrow as bright as their fat, an adult's
     (`templates.fatty_marrow`); CT scans are unchanged.
+    fov_mm: (3,) a scanner's field of view (mm; e.g. 181 217 181, the MNI152 grid's): the real heads are placed
+    on it as a scan is (`templates.on_scan_grid`: centred, the top of the head 5 voxels below the grid's top,
+    the neck and whatever else does not fit cut off), and the truth with them. None: each head's own grid (its
+    whole neck). The phantom family keeps its own grid.
     """
     ants = ants_anatomy(heads)
     mni = mni152_anatomy()
@@ -90,6 +94,8 @@ def cases(modality: str, voxel_mm: float, n_seeds: int, heads: Path, self_atlas:
     pairs = ((ants, atlas_ants), (mni, atlas_mni)) if self_atlas else ((ants, atlas_mni), (mni, atlas_ants))
     for name, (anat, atlas) in zip(("ants19.5", "mni152+fsaverage"), pairs):
         a = (with_diploe(anat) if diploe else anat).resampled(voxel_mm)
+        if fov_mm is not None:
+            a = on_scan_grid(a, [int(round(f / voxel_mm)) for f in fov_mm])
         truth = a.labels().labels
         for noise in NOISE[modality]:
             for seed in range(n_seeds):
@@ -111,7 +117,8 @@ def run(args) -> list[dict]:
         for anat, atlas, noise, contrast, vol, truth in cases(modality, args.voxel_mm, args.seeds, Path(args.heads),
                                                                 getattr(args, "self_atlas", False),
                                                                 getattr(args, "diploe", False),
-                                                                getattr(args, "fatty_marrow", False)):
+                                                                getattr(args, "fatty_marrow", False),
+                                                                getattr(args, "fov_mm", None)):
             t = time.perf_counter()
             try:
                 labels, seg = segment_reported(vol, atlas, cfg)
@@ -178,6 +185,9 @@ def main(argv=None):
                    help="the real heads' skulls with a diploe between compact tables (templates.with_diploe)")
     p.add_argument("--fatty-marrow", action="store_true",
                    help="with --diploe, MRI: the marrow as bright as fat, an adult's (templates.fatty_marrow)")
+    p.add_argument("--fov-mm", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="the real heads on a scan's field of view (mm, e.g. 181 217 181): centred, the neck cut "
+                        "(templates.on_scan_grid); default: each head's own grid")
     p.add_argument("--out", default=None, help="path stem: write <out>.json and <out>.md, atomically")
     args = p.parse_args(argv)
     if args.fatty_marrow and not args.diploe:
@@ -195,7 +205,9 @@ def main(argv=None):
             " (and minimum) over the scans of each row, "
             + ("real heads rendered WITH A DIPLOE (--diploe), " if args.diploe else "")
             + ("MRI marrow AS BRIGHT AS FAT (--fatty-marrow; the phantom family keeps its own), "
-               if args.fatty_marrow else "") +
+               if args.fatty_marrow else "")
+            + (f"real heads ON A {' x '.join(f'{f:g}' for f in args.fov_mm)} mm FIELD OF VIEW, NECK CUT (--fov-mm; "
+               "the phantom family keeps its own grid), " if args.fov_mm else "") +
             f"{args.voxel_mm:g} mm voxels, atlases 2 mm; noise: MRI Rician sd / white matter (phantom: its "
             f"own definition), CT HU; MRI bias field up to +-20 %. Bars (minimum): MRI 0.93/0.75/0.85/0.93, "
             f"CT 0.93/0.65/0.90/0.93 (brain/CSF/skull/scalp). Run: {wall:.0f} s wall, {cpu:.0f} s CPU, "

@@ -237,6 +237,56 @@ def with_diploe(anatomy: Anatomy, table_mm: float = DIPLOE_TABLE_MM) -> Anatomy:
 # ----------------------------------------------------------------------------------------------
 
 
+#: `on_scan_grid`: air kept above the top of the head (voxels), as a scanner's field of view leaves some
+SCAN_TOP_MARGIN_VOX = 5
+
+
+def on_scan_grid(anatomy: Anatomy, shape, top_margin_vox: int = SCAN_TOP_MARGIN_VOX) -> Anatomy:
+    """`anatomy` on a grid of `shape` with the same voxels, placed as a head scan's field of view is: the head
+    (voxels that are not all air) centred left-right and front-back, its top `top_margin_vox` voxels below the
+    grid's top, and whatever does not fit cut off (the neck below, the nose or the back of the head where the
+    grid is shorter front to back). Padding is air. Every kept voxel keeps its world position (the affine's
+    origin moves) and its fractions, T1, unmodelled-bone and diploe values.
+
+    Arguments:
+        anatomy: Anatomy, axes ordered (left-right, back-front, bottom-top) as the shipped heads are.
+        shape: (3,) the grid's voxels.
+        top_margin_vox: air voxels kept above the head.
+    Returns:
+        Anatomy of `shape`.
+    """
+    shape = tuple(int(n) for n in shape)
+    if len(shape) != 3 or min(shape) < 1:
+        raise ValueError(f"on_scan_grid: `shape` must be three positive voxel counts, got {shape}.")
+    head = np.nonzero(np.asarray(anatomy.fractions[0]) < 1.0 - 1e-6)
+    if not head[0].size:
+        raise ValueError("on_scan_grid: the anatomy is all air; there is no head to place.")
+    lo, hi = [int(h.min()) for h in head], [int(h.max()) for h in head]
+    # start: the source index of the grid's first voxel along each axis (negative: padding before it)
+    start = [(lo[a] + hi[a] + 1 - shape[a]) // 2 for a in (0, 1)] + [hi[2] + 1 + top_margin_vox - shape[2]]
+    src, dst = [], []
+    for a in range(3):
+        first, last = max(start[a], 0), min(start[a] + shape[a], anatomy.shape[a])
+        src.append(slice(first, max(last, first)))
+        dst.append(slice(first - start[a], max(last, first) - start[a]))
+    src, dst = tuple(src), tuple(dst)
+
+    def placed(a):
+        if a is None:
+            return None
+        a = np.asarray(a)
+        out = np.zeros(a.shape[:-3] + shape, a.dtype)
+        out[(Ellipsis,) + dst] = a[(Ellipsis,) + src]
+        return out
+
+    fractions = placed(anatomy.fractions)
+    fractions[0][fractions.sum(0) == 0] = 1.0  # the padding is air
+    affine = np.array(anatomy.affine, np.float64, copy=True)
+    affine[:3, 3] = affine[:3, :3] @ np.asarray(start, np.float64) + affine[:3, 3]
+    return Anatomy(fractions, affine, f"{anatomy.name} on a {'x'.join(map(str, shape))} grid",
+                   placed(anatomy.t1), placed(anatomy.unmodelled_bone), placed(anatomy.diploe))
+
+
 def _package_file(package: str, *parts: str) -> Path:
     """A data file shipped inside an installed package (located without importing the package)."""
     spec = importlib.util.find_spec(package)
