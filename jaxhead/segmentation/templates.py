@@ -237,7 +237,7 @@ def with_diploe(anatomy: Anatomy, table_mm: float = DIPLOE_TABLE_MM) -> Anatomy:
 # ----------------------------------------------------------------------------------------------
 
 
-#: `on_scan_grid`: air kept above the top of the head (voxels), as a scanner's field of view leaves some
+#: `on_scan_grid`: air kept above the top of the head (voxels): a scan's field of view leaves some above it
 SCAN_TOP_MARGIN_VOX = 5
 
 
