@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -44,7 +43,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxhead.phantom import make_head  # noqa: E402
-from jaxhead.segmentation.templates import ants_anatomy, fatty_marrow, on_scan_grid, render, with_diploe  # noqa: E402
+from jaxhead.segmentation.templates import (  # noqa: E402
+    ants_anatomy, fatty_marrow, on_scan_grid, render, shipped_heads_folder, with_diploe)
 from jaxhead.segmentation import SegmentConfig, classify, default_atlas, register_atlas  # noqa: E402
 from jaxhead.segmentation.segment import (  # noqa: E402
     _classify_all, _csf_inside_tables, _depth_prior, _em_data, _layer_split, _marrow_inside_skull, _refine_warp,
@@ -53,10 +53,6 @@ from jaxhead.segmentation.segment import (  # noqa: E402
 from jaxhead.volume import voxel_sizes  # noqa: E402
 
 
-# ../shared/data/heads beside the checkout (or a folder above it), or $JAXHEAD_HEADS
-HEADS = Path(os.environ.get("JAXHEAD_HEADS") or next(
-    (p / "shared" / "data" / "heads" for p in Path(__file__).resolve().parents
-     if (p / "shared" / "data" / "heads").is_dir()), "../shared/data/heads"))
 CPU = {}  # stage -> CPU seconds (time.process_time, all threads of this process)
 
 
@@ -123,7 +119,8 @@ def main():
                    help="the ANTs head (real anatomy, held out) or a jaxhead phantom (module docstring)")
     p.add_argument("--marrow", default="adult", choices=["adult", "child", "none"],
                    help="the ANTs head's skull: a diploe as bright as fat (adult), darker (child), or none")
-    p.add_argument("--heads", default=HEADS, help="folder of the ANTs head (c1..c6 .jnii; $JAXHEAD_HEADS)")
+    p.add_argument("--heads", default=shipped_heads_folder(),
+                   help="folder of the ANTs head (c1..c6 .jnii; $JAXHEAD_HEADS)")
     p.add_argument("--seed", type=int, default=22, help="the phantom's seed (--head phantom)")
     p.add_argument("--atlas", default="mni152", choices=["mni152", "phantom"],
                    help="default atlas: real anatomy (mni152, the product default) or the phantom atlas")

@@ -44,14 +44,12 @@ from jaxhead.phantom import make_head  # noqa: E402
 from jaxhead.segmentation import SegmentConfig, default_atlas, segment_reported  # noqa: E402
 from jaxhead.segmentation.atlas import anatomy_atlas  # noqa: E402
 from jaxhead.segmentation.templates import (  # noqa: E402
-    ants_anatomy, fatty_marrow, mni152_anatomy, on_scan_grid, random_contrast, render, with_diploe)
+    ants_anatomy, fatty_marrow, mni152_anatomy, on_scan_grid, random_contrast, render, shipped_heads_folder,
+    with_diploe)
 from jaxhead.tissue import TISSUES  # noqa: E402
 
 log = logging.getLogger("segmentation_accuracy")
-# ../shared/data/heads beside the checkout (a worktree may sit one folder deeper), or $JAXHEAD_HEADS
-HEADS = Path(os.environ.get("JAXHEAD_HEADS") or next(
-    (p / "shared" / "data" / "heads" for p in Path(__file__).resolve().parents
-     if (p / "shared" / "data" / "heads").is_dir()), "../shared/data/heads"))
+HEADS = shipped_heads_folder()  # ../shared/data/heads beside the checkout, or $JAXHEAD_HEADS
 BARS = {"mri": (0.93, 0.75, 0.85, 0.93), "ct": (0.93, 0.65, 0.90, 0.93)}
 #: noise levels: MRI Rician sd as a fraction of white matter; CT HU (phantom: its own units, see make_head)
 NOISE = {"mri": (0.03, 0.08), "ct": (5.0, 20.0)}

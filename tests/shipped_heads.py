@@ -4,13 +4,10 @@ The folder beside the checkout (a worktree may sit one folder deeper), or $JAXHE
 need the ANTs head carry `needs_heads` and skip where it is not present.
 """
 
-import os
-from pathlib import Path
-
 import pytest
 
-HEADS = Path(os.environ.get("JAXHEAD_HEADS") or next(
-    (p / "shared" / "data" / "heads" for p in Path(__file__).resolve().parents
-     if (p / "shared" / "data" / "heads").is_dir()), "../shared/data/heads"))
+from jaxhead.segmentation.templates import shipped_heads_folder
+
+HEADS = shipped_heads_folder()
 needs_heads = pytest.mark.skipif(not (HEADS / "c1ANTS19-5Years_head.jnii").exists(),
                                  reason="the ANTs test head (../shared/data/heads) is not here")

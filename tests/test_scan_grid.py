@@ -65,3 +65,16 @@ def test_bad_input_is_named():
     air = Anatomy(np.concatenate([np.ones_like(air.fractions[:1]), np.zeros_like(air.fractions[1:])]), air.affine, "air")
     with pytest.raises(ValueError, match="all air"):
         on_scan_grid(air, (10, 10, 10))
+
+
+def test_shipped_heads_folder_env_first_then_beside_the_checkout(monkeypatch, tmp_path):
+    from pathlib import Path
+
+    from jaxhead.segmentation.templates import shipped_heads_folder
+
+    monkeypatch.setenv("JAXHEAD_HEADS", str(tmp_path))
+    assert shipped_heads_folder() == tmp_path
+    monkeypatch.delenv("JAXHEAD_HEADS")
+    found = shipped_heads_folder()
+    assert found.parts[-3:] == ("shared", "data", "heads")
+    assert found.is_dir() or found == Path("../shared/data/heads")  # a folder above the package, or the fallback

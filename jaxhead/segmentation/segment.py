@@ -1509,10 +1509,16 @@ def csf_inside_cut(fit) -> float | None:
     fat-bright marrow (`tables_cut`, `marrow_inside_skull`'s case): on the MNI152 head's adult-marrow 8 % scan of
     random contrast 2 at 1 mm, moving bright skull inside the tables there took the marrow too (skull Dice
     0.882 -> 0.384). Gaussians below MARROW_MIN_SHARE of their class's weight are not counted."""
+    above = _skull_above_brain(fit)
+    return None if above is None or above >= 0 else skull_cut(fit)
+
+
+def _skull_above_brain(fit) -> float | None:
+    """The skull class's brightest live Gaussian mean less the brain class's darkest (`_live_means`), or None
+    with fewer than two live skull Gaussians or no live brain Gaussian: > 0 a fat-bright marrow (`tables_cut`),
+    < 0 a skull darker than the brain throughout (`csf_inside_cut`)."""
     skull, brain = _live_means(fit, Tissue.SKULL), _live_means(fit, Tissue.BRAIN)
-    if skull.size < 2 or brain.size == 0 or skull.max() >= brain.min():
-        return None
-    return skull_cut(fit)
+    return None if skull.size < 2 or brain.size == 0 else float(skull.max() - brain.min())
 
 
 def _live_means(fit, cls: Tissue) -> np.ndarray:
@@ -1564,10 +1570,8 @@ def tables_cut(fit) -> float | None:
     brighter than the brain class's darkest (T1: fat, 0.8-1.4 of white matter, is brighter than grey matter,
     0.55-0.8, templates.MRI_CONTRAST_RANGE; compact bone and its partial volumes are darker). Gaussians
     below MARROW_MIN_SHARE of their class's weight are not counted."""
-    skull, brain = _live_means(fit, Tissue.SKULL), _live_means(fit, Tissue.BRAIN)
-    if skull.size < 2 or brain.size == 0 or skull.max() <= brain.min():
-        return None
-    return skull_cut(fit)
+    above = _skull_above_brain(fit)
+    return None if above is None or above <= 0 else skull_cut(fit)
 
 
 def bright_skull_outside_tables(labels: np.ndarray, y: np.ndarray, cut: float | None) -> np.ndarray:

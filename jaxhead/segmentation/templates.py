@@ -42,6 +42,7 @@ import gzip
 import importlib.util
 import json
 import logging
+import os
 from pathlib import Path
 
 import equinox as eqx
@@ -458,6 +459,16 @@ def read_jnifti(path) -> tuple[np.ndarray, np.ndarray]:
     affine = np.eye(4)
     affine[:3] = np.asarray(h["Affine"], np.float64)
     return a.astype(np.float32) * slope, affine
+
+
+def shipped_heads_folder() -> Path:
+    """Where the shipped anatomy lies (the ANTs head's c1..c6 .jnii): $JAXHEAD_HEADS, else shared/data/heads in
+    the first folder above this package that has one (../shared/data/heads beside a checkout, one folder deeper
+    for a worktree), else ../shared/data/heads. Only a path: nothing is read or checked here."""
+    if env := os.environ.get("JAXHEAD_HEADS"):
+        return Path(env)
+    return next((p / "shared" / "data" / "heads" for p in Path(__file__).resolve().parents
+                 if (p / "shared" / "data" / "heads").is_dir()), Path("../shared/data/heads"))
 
 
 def ants_anatomy(folder) -> Anatomy:
