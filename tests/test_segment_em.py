@@ -373,3 +373,59 @@ def test_variance_prior_keeps_an_emptied_gaussian_from_collapsing_to_a_spike():
     # the populated Gaussians keep their own widths
     np.testing.assert_allclose(np.sqrt(np.asarray(mp.variances)[[0, 2]]), np.sqrt(np.asarray(ml.variances)[[0, 2]]),
                                rtol=0.02)
+
+
+def numpy_infer(y, prior, params, opts, n_sweeps, coords):
+    """`infer_posteriors` in NumPy, written from its docstring: atlas prior (floored, normalised), bias-corrected
+    data, Gaussians grouped per class, mean-field sweeps with the Potts prior renormalised per sweep, then the
+    Cardoso relaxed prior ((1 - a) atlas + a * normalised Gaussian-smoothed posteriors) and as many sweeps again."""
+    p = np.maximum(prior, 0) + opts.prior_floor
+    atlas = p / p.sum(0)
+    b = np.asarray(bias_field(jnp.asarray(params.bias), coords, opts.bias_degree)) if opts.bias_degree else 0.0
+    yc = y - b
+    mu, var, w = (np.asarray(a, float) for a in (params.means, params.variances, params.weights))
+    comp = w[:, None, None, None] * np.exp(-0.5 * (yc[None] - mu[:, None, None, None]) ** 2 / var[:, None, None, None]) \
+        / np.sqrt(2 * np.pi * var)[:, None, None, None]
+    cc = np.asarray(opts.component_class)
+    lik = np.stack([comp[cc == k].sum(0) for k in range(opts.n_classes)])
+
+    def post_of(pr):
+        j = pr * lik
+        return j / j.sum(0)
+
+    def sweeps(pr, q):
+        for _ in range(n_sweeps):
+            ns = np.stack([ndimage.correlate(qk, np.array([[[0, 0, 0], [0, 1, 0], [0, 0, 0]], [[0, 1, 0], [1, 0, 1],
+                           [0, 1, 0]], [[0, 0, 0], [0, 1, 0], [0, 0, 0]]], float), mode="constant") for qk in q])
+            m = pr * np.exp(opts.beta * ns)
+            q = post_of(m / m.sum(0))
+        return q
+
+    q = sweeps(atlas, post_of(atlas))
+    if opts.relax > 0:
+        sm = np.asarray(gaussian_smooth(jnp.asarray(q), opts.relax_sigma_vox))
+        q = sweeps((1 - opts.relax) * atlas + opts.relax * sm / sm.sum(0), q)
+    return q
+
+
+@pytest.mark.parametrize("beta, relax, n_sweeps", [(0.4, 0.5, 3), (0.4, 0.0, 2), (0.0, 0.5, 2), (0.4, 0.5, 0)])
+def test_infer_posteriors_against_numpy(beta, relax, n_sweeps):
+    # three classes, the middle one of two Gaussians, a degree-2 bias field: each sweep's likelihood is
+    # computed once and the Potts prior's normalisation folded into the posterior's; the result must
+    # equal the E-step written out
+    rng = np.random.default_rng(3)
+    lab = rng.integers(0, 3, SHAPE)
+    y = np.array([0.0, 2.0, 4.0])[lab] + rng.normal(0, 0.6, SHAPE)
+    prior = rng.random((3,) + SHAPE)
+    prior[1, :4] = 0.0  # zero prior: the floor applies
+    opts = EMOptions(component_class=(0, 1, 1, 2), n_classes=3, beta=beta, relax=relax, relax_sigma_vox=1.0,
+                     bias_degree=2)
+    coords = grid_coordinates(SHAPE, jnp.float64)
+    params = MixtureParams(means=jnp.array([0.1, 1.8, 2.3, 4.1]), variances=jnp.array([0.4, 0.3, 0.5, 0.3]),
+                           weights=jnp.array([1.0, 0.6, 0.4, 1.0]),
+                           bias=jnp.asarray(rng.normal(0, 0.1, len(bias_terms(2)))))
+    got = np.asarray(infer_posteriors(jnp.asarray(y), jnp.asarray(prior), params, opts, n_sweeps, coords))
+    want = numpy_infer(y, prior, params, opts, n_sweeps, coords)
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    assert np.abs(got - want).max() < 1e-9 and np.abs(want - numpy_infer(y, prior, params, opts, 0, coords)).max() \
+        > (1e-3 if n_sweeps else -1)  # the sweeps move the posteriors: the comparison is not of the no-MRF map
