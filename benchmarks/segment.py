@@ -168,7 +168,7 @@ def main():
     kept = {"priors": np.asarray(priors)}  # the priors the steps after the marrow step see (as in segment)
 
     def marrow(*a):
-        kept["marrow"], fit, summary = _marrow_inside_skull(*a)
+        kept["marrow"], fit, summary, kept["given_back"] = _marrow_inside_skull(*a, defer_mirror=cfg.layer_split_on())
         kept["priors"] = kept["marrow"]
         return fit, summary
 
@@ -177,7 +177,7 @@ def main():
         return _csf_inside_tables(a[0], kept["priors"], *a[1:])
 
     def split(*a):
-        fit, summary, kept["split"] = _layer_split(*a, return_priors=True)
+        fit, summary, kept["split"] = _layer_split(*a, return_priors=True, given_back=kept.get("given_back"))
         return fit, summary
 
     if cfg.marrow_inside_skull_on():  # on for MRI (skipped on voxels coarser than a table)

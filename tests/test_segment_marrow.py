@@ -214,15 +214,21 @@ def test_scalp_fat_the_skull_took_goes_back_to_the_scalp(marrow_inside_skull):
     assert dice_scores(labels, truth)["skull"] > 0.98
 
 
-def test_scalp_fat_of_a_skull_without_marrow_goes_back_and_the_brain_stays():
+@pytest.mark.parametrize("layer_split", [False, True])
+def test_scalp_fat_of_a_skull_without_marrow_goes_back_and_the_brain_stays(layer_split):
     """No marrow, the atlas's skull 2 mm into the fat all round: the skull class's fat-bright Gaussian describes
     only scalp fat. After the fat goes back, the EM starts afresh: started from the last fit, that Gaussian
-    (its voxels gone) drifted to white matter (brain Dice 0.50 in the session-25 trial)."""
+    (its voxels gone) drifted to white matter (brain Dice 0.50 in the session-25 trial). With the layer split
+    on, the mirror's EM is the split's (`defer_mirror`), from the EM's own start too."""
     vol, truth = _scan(marrow=False)
-    labels, seg = segment_reported(vol, _atlas(skull_outer_mm=31.0), SegmentConfig(**CFG))
+    labels, seg = segment_reported(vol, _atlas(skull_outer_mm=31.0),
+                                   SegmentConfig(**{**CFG, "layer_split": layer_split}))
     lab = np.asarray(labels.labels)
     fat, _ = _fat_and_marrow()
-    assert seg.registration["marrow_inside_skull"]["given_back_to_scalp"] > 0.5 * fat.sum()
+    report = seg.registration["marrow_inside_skull"]
+    assert report["given_back_to_scalp"] > 0.5 * fat.sum()
+    assert report["given_back_em"] == ("deferred to the layer split" if layer_split else "run")
+    assert ("layer_split" in seg.registration) == layer_split
     assert (lab[fat] == SKULL).mean() < 0.02
     d = dice_scores(labels, truth)
     assert d["brain"] > 0.99 and d["skull"] > 0.98 and d["scalp"] > 0.98
