@@ -1380,8 +1380,9 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
     `_classify_all`'s output, `pi` the proportions learnt where the atlas models no bone (None: none), kept.
     With `defer_mirror` (the layer split runs next) the mirror's priors are moved but its EM is not run: the
     layer split's EM, from its own start, is that EM too (`_layer_split`'s `given_back`); one EM run fewer, the
-    split learnt on labels with those voxels given to the scalp (session 28: on the segment benchmark's head
-    21.8 s instead of 27.8 s for the MRI chain, Dice within 0.006; README, issue 11 session 28).
+    split learnt on labels with those voxels given to the scalp. Session 28: benchmarks/segment.py 29.2-30.0 s ->
+    24.5 s; on the adult-marrow 1 mm table the rows meeting the bars stay 4 of 6, the ANTs head's CSF moves by
+    -0.004 to -0.032 (experiments/results/segmentation_mirror_deferred_fatty_mri_1mm.md).
     Returns (the priors, without those proportions applied, for the later steps; the fit; summary for the run
     report; the voxels given back whose EM was deferred, or None)."""
     t0 = time.perf_counter()
