@@ -415,6 +415,10 @@ class SegmentConfig:
             voxel size rounded, at least 1 (`sample_stride`): every 2nd voxel at 1 mm, every voxel at 2 mm.
             3 mm (SPM's sampling distance) halves the EM's cost at 1 mm but was measured to cost a met row
             (experiments/results/segmentation_em_sample.md).
+        first_pass_sample_mm: the same for `classify`'s first EM where the atlas models no bone (`unmodelled`):
+            that EM only gives the region's skull/scalp proportions (a regional average) and the start of the
+            second EM, which runs on `em_sample_mm`; at least `em_sample_mm`. 4 mm: every 4th voxel at 1 mm,
+            every 2nd at 2 mm (README, issue 11 session 29).
         sweeps: mean-field sweeps on the full grid after an EM on a strided sample of it.
         precision: "float32" (default, see module docstring) or "float64".
         atlas: the default atlas used when `segment` gets none: "mni152" (real anatomy: the ICBM
@@ -508,6 +512,7 @@ class SegmentConfig:
     max_iter: int = 50
     tol: float = 1e-4
     em_sample_mm: float = 2.0
+    first_pass_sample_mm: float = 4.0
     sweeps: int = 3
     precision: Literal["float32", "float64"] = "float32"
     atlas: Literal["mni152", "phantom"] = "mni152"
@@ -555,6 +560,8 @@ class SegmentConfig:
             raise ValueError(f"[segment] `tol` must be > 0, got {self.tol}.")
         if not self.em_sample_mm > 0:
             raise ValueError(f"[segment] `em_sample_mm` must be > 0, got {self.em_sample_mm}.")
+        if not self.first_pass_sample_mm > 0:
+            raise ValueError(f"[segment] `first_pass_sample_mm` must be > 0, got {self.first_pass_sample_mm}.")
         if self.sweeps < 0:
             raise ValueError(f"[segment] `sweeps` must be >= 0, got {self.sweeps}.")
         if self.precision not in ("float32", "float64"):
@@ -1123,7 +1130,8 @@ def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     if equal_start:
         equal = np.full(len(UNMODELLED_CLASSES), 1.0 / len(UNMODELLED_CLASSES))
         first = with_proportions(np.asarray(priors), unmodelled, equal)
-    post, res, opts, coords, pi, sample = _classify(volume, first, cfg, unmodelled)
+    first_mm = max(cfg.first_pass_sample_mm, cfg.em_sample_mm) if unmodelled is not None else None  # a first pass
+    post, res, opts, coords, pi, sample = _classify(volume, first, cfg, unmodelled, sample_mm=first_mm)
     if unmodelled is not None:
         log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
                  [Tissue(c).name.lower() for c in UNMODELLED_CLASSES], np.round(pi, 3).tolist())
@@ -1149,7 +1157,7 @@ def sample_stride(em_sample_mm: float, voxel_mm) -> tuple[int, ...]:
     return tuple(max(1, int(round(em_sample_mm / float(v)))) for v in voxel_mm)
 
 
-def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=None):
+def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=None, sample_mm=None):
     """`classify` with one set of priors. With `unmodelled` (a first pass), the proportions of
     UNMODELLED_CLASSES in that region instead of the posteriors (None): `atlas.regional_proportions`
     of the class likelihoods at the fitted parameters (posteriors under a uniform prior, no MRF, no
@@ -1158,10 +1166,10 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=
     as well determined from every k-th voxel, and at 1 mm the full grid costs seconds (profiled on
     the case of benchmarks/segment.py: 4.4 s of 17 s of `classify`). `init`: the EM's starting
     MixtureParams (a fit on other priors, for the steps that run it again); None: the atlas-weighted
-    quantiles of the scan (`em.fit_mixture`)."""
+    quantiles of the scan (`em.fit_mixture`). `sample_mm`: the EM's sampling distance (None: `cfg.em_sample_mm`)."""
     dtype = _dtype(cfg)
     vox = voxel_sizes(volume.affine)
-    stride = sample_stride(cfg.em_sample_mm, vox)
+    stride = sample_stride(cfg.em_sample_mm if sample_mm is None else sample_mm, vox)
     # Pad the grid (edge values: air) up to a multiple of 8 strided voxels so that scans of similar
     # size share compiled code; the padding is cropped off the results.
     shape = volume.shape
