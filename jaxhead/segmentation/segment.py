@@ -62,6 +62,7 @@ import itertools
 import logging
 import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -1809,7 +1810,8 @@ def enclosed(wall: np.ndarray, escape: np.ndarray) -> np.ndarray:
 
     Each ray is followed by one sweep of the grid against it (slice by slice along an axis the ray
     moves on, each slice reading the next one shifted by the ray's other steps), so the cost is 26
-    passes over the grid, not one per voxel and ray.
+    passes over the grid, not one per voxel and ray; the rays are shared between two threads (NumPy's
+    logical operations release the GIL).
 
     Arguments:
         wall, escape: (x, y, z) boolean masks (disjoint; `wall` wins where both are set).
@@ -1819,23 +1821,33 @@ def enclosed(wall: np.ndarray, escape: np.ndarray) -> np.ndarray:
     wall, escape = np.asarray(wall, bool), np.asarray(escape, bool)
     if wall.shape != escape.shape or wall.ndim != 3:
         raise ValueError(f"enclosed: `wall` {wall.shape} and `escape` {escape.shape} must be 3-D masks of one grid.")
+    open_ = ~escape
+    steps = [step for step in itertools.product((-1, 0, 1), repeat=3) if any(step)]
+    with ThreadPoolExecutor(2) as pool:
+        half = list(pool.map(lambda group: _enclosed_along(wall, open_, group), (steps[0::2], steps[1::2])))
+    return half[0] & half[1]
+
+
+def _enclosed_along(wall: np.ndarray, open_: np.ndarray, steps) -> np.ndarray:
+    """`enclosed` for the rays `steps` only (`open_` = not escape)."""
     inside = np.ones(wall.shape, bool)
-    for step in itertools.product((-1, 0, 1), repeat=3):
-        if not any(step):
-            continue
+    for step in steps:
         a = next(i for i in range(3) if step[i])  # sweep along the first axis the ray moves on
-        w, e, hit = np.moveaxis(wall, a, 0), np.moveaxis(escape, a, 0), np.zeros(np.moveaxis(wall, a, 0).shape, bool)
+        w, o = np.moveaxis(wall, a, 0), np.moveaxis(open_, a, 0)
+        hit = np.empty(w.shape, bool)
         dy, dz = (step[i] for i in range(3) if i != a)
         ny, nz = w.shape[1:]
         src = (slice(max(dy, 0), ny + min(dy, 0)), slice(max(dz, 0), nz + min(dz, 0)))  # slice i + step, shifted
         dst = (slice(max(-dy, 0), ny + min(-dy, 0)), slice(max(-dz, 0), nz + min(-dz, 0)))
         order = range(len(w) - 1, -1, -1) if step[a] > 0 else range(len(w))
-        nxt = np.zeros((ny, nz), bool)  # beyond the edge: escaped
+        ahead = np.zeros((ny, nz), bool)  # beyond the edge, and where the shift reads past a side: escaped
+        prev = None
         for i in order:
-            ahead = np.zeros((ny, nz), bool)
-            ahead[dst] = nxt[src]
-            nxt = w[i] | (~e[i] & ahead)
-            hit[i] = nxt
+            if prev is not None:
+                ahead[dst] = hit[prev][src]
+            np.logical_and(o[i], ahead, out=hit[i])
+            np.logical_or(hit[i], w[i], out=hit[i])
+            prev = i
         inside &= np.moveaxis(hit, 0, a)
     return inside
 
