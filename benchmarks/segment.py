@@ -128,6 +128,8 @@ def main():
     p.add_argument("--depth-prior", action="store_true", help="MRI: run the depth prior before the layer split")
     p.add_argument("--no-csf-inside-tables", action="store_true",
                    help="MRI: without SegmentConfig.csf_inside_tables (on by default; timed before and after the split)")
+    p.add_argument("--first-pass-sample-mm", type=float, default=None,
+                   help="SegmentConfig.first_pass_sample_mm (default: the library's)")
     args = p.parse_args()
 
     print(f"jax {jax.__version__}, devices {jax.devices()}")
@@ -140,7 +142,9 @@ def main():
     print(f"default atlas {atlas.name!r} {atlas.shape} ({atlas.n_subjects} subjects): {time.perf_counter() - t:.1f} s "
           "(cached after the first use)")
     cfg = SegmentConfig(modality=args.modality, atlas=args.atlas, depth_prior=True if args.depth_prior else None,
-                        csf_inside_tables=False if args.no_csf_inside_tables else None)
+                        csf_inside_tables=False if args.no_csf_inside_tables else None,
+                        **({} if args.first_pass_sample_mm is None else
+                           {"first_pass_sample_mm": args.first_pass_sample_mm}))
 
     print(_load())
     (tr, priors), t_reg1 = _timed(register_atlas, vol, atlas, cfg, key="reg1")

@@ -199,7 +199,7 @@ def test_equal_start_learns_the_facial_bone_share_on_mri(cache):
 @needs_heads
 def test_first_pass_on_a_coarser_sample_learns_the_same_share(cache):
     """The first EM only learns a regional average (the skull share where the atlas models no bone) and the second
-    EM's start, so `first_pass_sample_mm` samples it more sparsely than `em_sample_mm`: on the ANTs head at 4 mm,
+    EM's start, so `first_pass_sample_mm` may sample it more sparsely than `em_sample_mm`: on the ANTs head at 4 mm,
     every 2nd voxel (8 mm) learns the share of every voxel (4 mm) to within 0.03, both near the truth, and the
     labels agree."""
     ants = ants_anatomy(HEADS).resampled(VOX)
