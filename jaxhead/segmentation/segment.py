@@ -418,9 +418,9 @@ class SegmentConfig:
             (experiments/results/segmentation_em_sample.md).
         first_pass_sample_mm: the same for `classify`'s first EM where the atlas models no bone (`unmodelled`):
             that EM only gives the region's skull/scalp proportions (a regional average) and the start of the
-            second EM, which runs on `em_sample_mm`; at least `em_sample_mm`. 4 mm cut the segment benchmark by
-            ~3.5 s, but the second EM, from that start, lost a met row of the child's-marrow 1 mm table, so the
-            default is 2 mm (experiments/results/segmentation_first_pass.md).
+            second EM, which runs on `em_sample_mm`; at least `em_sample_mm`. 4 and 3 mm cut the segment benchmark
+            by 2.5-3.5 s, but from their start the second EM lost a met row (4 mm: child's marrow at 1 mm; 3 mm:
+            adult's marrow at 1 mm), so the default is 2 mm (experiments/results/segmentation_first_pass.md).
         sweeps: mean-field sweeps on the full grid after an EM on a strided sample of it.
         precision: "float32" (default, see module docstring) or "float64".
         atlas: the default atlas used when `segment` gets none: "mni152" (real anatomy: the ICBM
