@@ -158,7 +158,7 @@ def main():
     (post, res, opts, coords, pi, _), t_em2 = _timed(_classify_all, vol, priors, cfg, unmodelled, key="em2")  # + pi
     n_iter = int(res.n_iter)
     runs = "" if unmodelled is None else (f", two EM runs (unmodelled bone; the first on the "
-                                          f"{max(cfg.first_pass_sample_mm, cfg.em_sample_mm):g} mm sample)")
+                                          f"{cfg.first_pass_sample_of():g} mm sample)")
     print(f"EM + MRF (classify{runs}; {n_iter} EM iterations on the {cfg.em_sample_mm:g} mm sample, "
           f"{cfg.sweeps} + {cfg.sweeps} sweeps at 1 mm): first call {t_em1:.1f} s, after compile {t_em2:.1f} s "
           f"(CPU {CPU['em1']:.1f} s, {CPU['em2']:.1f} s; target <= 20 s: {'met' if t_em2 <= 20 else 'NOT met'}); "

@@ -677,6 +677,11 @@ class SegmentConfig:
             return DEFAULT_MARROW_INSIDE_SKULL[self.modality]
         return bool(self.marrow_inside_skull)
 
+    def first_pass_sample_of(self) -> float:
+        """The first EM's sampling distance where the atlas models no bone (`first_pass_sample_mm`, at least
+        `em_sample_mm`), mm."""
+        return max(self.first_pass_sample_mm, self.em_sample_mm)
+
     def unmodelled_start_of(self) -> str:
         """The first EM's shares where the atlas models no bone (`unmodelled_start`, or the modality default)."""
         return DEFAULT_UNMODELLED_START[self.modality] if self.unmodelled_start is None else self.unmodelled_start
@@ -1132,7 +1137,7 @@ def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     if equal_start:
         equal = np.full(len(UNMODELLED_CLASSES), 1.0 / len(UNMODELLED_CLASSES))
         first = with_proportions(np.asarray(priors), unmodelled, equal)
-    first_mm = max(cfg.first_pass_sample_mm, cfg.em_sample_mm) if unmodelled is not None else None  # a first pass
+    first_mm = cfg.first_pass_sample_of() if unmodelled is not None else None  # a first pass
     post, res, opts, coords, pi, sample = _classify(volume, first, cfg, unmodelled, sample_mm=first_mm)
     if unmodelled is not None:
         log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
