@@ -195,3 +195,15 @@ def test_classify_fits_on_the_strided_sample():
         post, res, _, _ = classify(vol, priors, SegmentConfig(modality="mri", em_sample_mm=mm, bias_degree=0))
         assert res.posteriors.shape[1:] == sample and post.shape == (5, 48, 40, 30)
         np.testing.assert_allclose(post.sum(0), 1.0, atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(5, 7, 6, 4), (5, 300), (1, 9), (3, 0)])
+def test_class_argmax_is_numpys_argmax(shape):
+    """`class_argmax` against np.argmax(axis=0), ties included (coarse values tie often; the first class wins)."""
+    from jaxhead.segmentation.segment import class_argmax
+
+    rng = np.random.default_rng(len(shape) + shape[-1])
+    for p in (rng.random(shape, dtype=np.float32), np.round(rng.random(shape) * 3).astype(np.float32)):
+        got = class_argmax(p)
+        assert got.dtype == np.intp and got.shape == shape[1:]
+        np.testing.assert_array_equal(got, np.argmax(p, axis=0))

@@ -417,10 +417,10 @@ class SegmentConfig:
             3 mm (SPM's sampling distance) halves the EM's cost at 1 mm but was measured to cost a met row
             (experiments/results/segmentation_em_sample.md).
         first_pass_sample_mm: the same for `classify`'s first EM where the atlas models no bone (`unmodelled`):
-            that EM only gives the region's skull/scalp proportions (a regional average) and the start of the
-            second EM, which runs on `em_sample_mm`; at least `em_sample_mm`. 4 and 3 mm cut the segment benchmark
-            by 2.5-3.5 s, but from their start the second EM lost a met row (4 mm: child's marrow at 1 mm; 3 mm:
-            adult's marrow at 1 mm), so the default is 2 mm (experiments/results/segmentation_first_pass.md).
+            that EM only gives the region's skull/scalp proportions (a regional average over 10^5-10^6 voxels);
+            the second EM, on `em_sample_mm`, starts afresh, not from where the first stopped. At least
+            `em_sample_mm`. When the second EM started from the first's end point, 4 and 3 mm each lost a met
+            row, so until session 30 the default was 2 mm (experiments/results/segmentation_first_pass.md).
         sweeps: mean-field sweeps on the full grid after an EM on a strided sample of it.
         precision: "float32" (default, see module docstring) or "float64".
         atlas: the default atlas used when `segment` gets none: "mni152" (real anatomy: the ICBM
@@ -514,7 +514,7 @@ class SegmentConfig:
     max_iter: int = 50
     tol: float = 1e-4
     em_sample_mm: float = 2.0
-    first_pass_sample_mm: float = 2.0
+    first_pass_sample_mm: float = 4.0
     sweeps: int = 3
     precision: Literal["float32", "float64"] = "float32"
     atlas: Literal["mni152", "phantom"] = "mni152"
@@ -1106,6 +1106,20 @@ def unmodelled_on_grid(volume: Volume, atlas: Atlas, transform: Transform, cfg: 
     return np.clip(np.asarray(u), 0.0, 1.0)
 
 
+def class_argmax(posteriors) -> np.ndarray:
+    """`np.argmax(posteriors, axis=0)` (ties: the first class) by one pass per class: about twice as fast on a
+    (5, x, y, z) float32 array at 1 mm, which `np.argmax` reduces along its slowest axis (it is called about a
+    dozen times per MRI segmentation). Posteriors hold no NaN (np.argmax would return a NaN's index)."""
+    p = np.asarray(posteriors)
+    best = np.array(p[0], copy=True)
+    idx = np.zeros(p.shape[1:], np.intp)
+    for k in range(1, len(p)):
+        above = p[k] > best
+        np.maximum(best, p[k], out=best)
+        idx[above] = k
+    return idx
+
+
 def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmodelled=None):
     """EM + MRF classification of a scan given priors on its grid (the second half of `segment`).
 
@@ -1142,11 +1156,13 @@ def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     if unmodelled is not None:
         log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
                  [Tissue(c).name.lower() for c in UNMODELLED_CLASSES], np.round(pi, 3).tolist())
-        # From equal shares the first fit already models the region's bone, so the second EM starts from
-        # it (fewer iterations); from the placeholder its scalp class has taken that bone, and warm-started
-        # the second EM kept some of it (CT 2 mm, ANTs head: skull 0.985 -> 0.973), so that one starts afresh.
+        # The second EM starts from its own start on the new priors, not from where the first stopped: the
+        # first only has to learn `pi`, so it may sample more sparsely (`first_pass_sample_mm`); warm-started,
+        # the second EM inherited the first's end point (from the placeholder start its scalp class keeps
+        # some of the region's bone: CT 2 mm, ANTs head, skull 0.985 -> 0.973; from equal shares at a 3 or 4 mm
+        # first pass it lost a met row, experiments/results/segmentation_first_pass.md).
         post, res, opts, coords, _, sample = _classify(volume, with_proportions(np.asarray(priors), unmodelled, pi),
-                                                       cfg, init=res.params if equal_start else None)
+                                                       cfg)
     return post, res, opts, coords, pi, sample
 
 
@@ -1309,7 +1325,7 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
                  summary["scalp_outside_skull"])
     t2 = time.perf_counter()
     log.info("segment timings (s, compile included): registration %.1f, EM + MRF %.1f", t1 - t0, t2 - t1)
-    labels = LabelMap(np.argmax(post, axis=0).astype(np.uint8), volume.affine)
+    labels = LabelMap(class_argmax(post).astype(np.uint8), volume.affine)
     if opts.bias_degree > 0:
         b = np.asarray(bias_field(res.params.bias, coords, opts.bias_degree), dtype=np.float64)
         bias = np.exp(b) if cfg.modality == "mri" else b
@@ -1361,13 +1377,13 @@ def _depth_prior(volume: Volume, atlas: Atlas, priors: np.ndarray, unmodelled, p
     summary for the run report)."""
     t0 = time.perf_counter()
     profile, _ = csf_depth_profile(np.asarray(atlas.priors), voxel_sizes(atlas.affine))
-    labels = np.argmax(post, axis=0)
+    labels = class_argmax(post)
     _brain_and_scalp(labels, "depth_prior")
     if pi is not None:  # the proportions learnt where the atlas models no bone are kept, not re-learnt
         priors = with_proportions(priors, unmodelled, pi)
     fit = _classify(volume, with_depth_profile(priors, labels, voxel_sizes(volume.affine), profile), cfg)
     fit = fit[:4] + (pi,) + fit[5:]
-    changed = np.argmax(fit[0], axis=0) != labels
+    changed = class_argmax(fit[0]) != labels
     summary = dict(profile=np.round(profile, 3).tolist(), relabelled_fraction=round(float(changed.mean()), 4),
                    seconds=round(time.perf_counter() - t0, 1))
     log.info("segment (%s): CSF/skull priors by depth between brain and scalp: %s", cfg.modality, summary)
@@ -1410,7 +1426,7 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
     priors = np.array(priors, np.float32, copy=True)
     moved, total, below = [], np.zeros(priors.shape[1:], bool), 0
     for _ in range(MARROW_ROUNDS):
-        labels = np.argmax(fit[0], axis=0)
+        labels = class_argmax(fit[0])
         skull = labels == Tissue.SKULL
         if not (skull.any() and ((labels == Tissue.SCALP) & ~total).any()):  # no skull, or no scalp left to give
             break
@@ -1423,7 +1439,7 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
         fit = _refit_with_prior_moved(volume, priors, inside, Tissue.SCALP, Tissue.SKULL, unmodelled, pi, fit, cfg)
     given_back, cut, deferred = 0, tables_cut(fit), None
     if cut is not None:  # the skull class has learnt a marrow's fat: scalp fat beside the outer table may have too
-        labels = np.argmax(fit[0], axis=0)
+        labels = class_argmax(fit[0])
         out = bright_skull_outside_tables(labels, corrected_em_data(volume, fit, cfg), cut)
         if out.sum() >= MARROW_MIN_SHARE * (labels == Tissue.SKULL).sum():
             given_back = int(out.sum())
@@ -1511,7 +1527,7 @@ def _csf_inside_tables(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, 
     if (cut := csf_inside_cut(fit)) is None:
         return fit, dict(voxels=0, skipped="the skull class learnt a Gaussian brighter than the brain's darkest: "
                          "a fat-bright marrow (marrow_inside_skull's case), not CSF", **means)
-    labels = np.argmax(fit[0], axis=0)
+    labels = class_argmax(fit[0])
     out = bright_skull_inside_tables(labels, corrected_em_data(volume, fit, cfg), cut)
     n, n_skull = int(out.sum()), int((labels == Tissue.SKULL).sum())
     summary = dict(cut=round(cut, 4), found=n, skull_voxels=n_skull, min_share=MARROW_MIN_SHARE, voxels=0, **means)
@@ -1652,7 +1668,7 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     ran on (float32, the proportions applied)."""
     t0 = time.perf_counter()
     post, res, opts, coords = fit
-    labels = np.argmax(post, axis=0)
+    labels = class_argmax(post)
     if given_back is not None:
         labels[given_back] = Tissue.SCALP
     _brain_and_scalp(labels, "layer_split")
@@ -1677,7 +1693,7 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     new = _classify(volume, split_priors, cfg, init=res.params if given_back is None else None)
     new = new[:4] + (pi,) + new[5:]
     summary.update(window_mm=LAYER_SPLIT_MM, width=LAYER_SPLIT_WIDTH,
-                   relabelled_fraction=round(float((np.argmax(new[0], axis=0) != labels).mean()), 4),
+                   relabelled_fraction=round(float((class_argmax(new[0]) != labels).mean()), 4),
                    seconds=round(time.perf_counter() - t0, 1))
     log.info("segment (%s): CSF/skull split learnt from the scan's band: %s", cfg.modality, summary)
     return (new, summary, split_priors) if return_priors else (new, summary)
@@ -1733,7 +1749,7 @@ def bone_majority(hu: np.ndarray, posteriors: np.ndarray) -> tuple[np.ndarray, d
         (posteriors with the rule applied (one-hot where it decided), dict of B, S, T and voxel counts
         moved), or the input and an empty dict when the EM labelled no skull or no brain.
     """
-    lab = np.argmax(posteriors, axis=0)
+    lab = class_argmax(posteriors)
     sk, br = lab == int(Tissue.SKULL), lab == int(Tissue.BRAIN)
     if not sk.any() or not br.any():
         return posteriors, {}
@@ -1792,7 +1808,7 @@ def air_majority(hu: np.ndarray, posteriors: np.ndarray) -> tuple[np.ndarray, di
         moved), or the input and an empty dict when the EM labelled no background or no scalp, or the
         scalp is not brighter than the background (not a CT the rule describes).
     """
-    lab = np.argmax(posteriors, axis=0)
+    lab = class_argmax(posteriors)
     bg, sc = lab == int(Tissue.BACKGROUND), lab == int(Tissue.SCALP)
     if not bg.any() or not sc.any():
         return posteriors, {}
@@ -1888,7 +1904,7 @@ def scalp_outside_skull(posteriors: np.ndarray, y: np.ndarray, params: MixturePa
         (posteriors, dict of voxels relabelled, in all and per class they went to). Voxels whose only
         class is scalp (no other posterior) keep it.
     """
-    lab = np.argmax(posteriors, axis=0)
+    lab = class_argmax(posteriors)
     sc = lab == int(Tissue.SCALP)
     info = dict(relabelled=0)
     if not sc.any() or not (lab == int(Tissue.SKULL)).any():
@@ -1907,7 +1923,7 @@ def scalp_outside_skull(posteriors: np.ndarray, y: np.ndarray, params: MixturePa
     post = np.array(posteriors, copy=True)
     post[int(Tissue.SCALP), drop] = 0.0
     post[:, drop] /= post[:, drop].sum(0)
-    to = np.argmax(post[:, drop], axis=0)
+    to = class_argmax(post[:, drop])
     info = dict(relabelled=int(drop.sum()), **{Tissue(k).name.lower(): int((to == k).sum()) for k in np.unique(to)})
     return post, info
 
