@@ -1131,11 +1131,12 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
             bone (`Atlas.unmodelled`, resampled; its priors there are placeholder soft tissue). There
             the proportions of UNMODELLED_CLASSES (skull, scalp) are learnt from the scan: a first EM
             run with the atlas priors (there, by `cfg.unmodelled_start`, equal shares of those classes
-            or the atlas's placeholder) fits the class intensity models; their likelihoods at
+            or the atlas's placeholder), on the `cfg.first_pass_sample_mm` sample, fits the class intensity
+            models; their likelihoods at
             each voxel of that region give the maximum-likelihood proportions
             (`atlas.regional_proportions`; voxel weight = unmodelled x the classes' share of the
-            likelihood); a second run uses priors that share that region in those proportions
-            (`atlas.with_proportions`).
+            likelihood); a second run, from its own start (not where the first stopped), uses priors
+            that share that region in those proportions (`atlas.with_proportions`).
     Returns:
         (posteriors (5, x, y, z) float32 numpy, EMResult of the parameter fit (on the strided
         sample), EMOptions used, bias coordinates of the full grid).
@@ -1143,26 +1144,33 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
     return _classify_all(volume, priors, cfg, unmodelled)[:4]
 
 
+def _first_pass(volume: Volume, priors, cfg: SegmentConfig, unmodelled):
+    """`classify`'s first EM where the atlas models no bone (`unmodelled`), on the `first_pass_sample_of()` sample,
+    from equal skull/scalp shares there or the atlas's placeholder (`unmodelled_start_of()`). Returns (its
+    EMResult, the shares of UNMODELLED_CLASSES it learnt there)."""
+    first = priors
+    if cfg.unmodelled_start_of() == "equal":
+        first = with_proportions(np.asarray(priors), unmodelled,
+                                 np.full(len(UNMODELLED_CLASSES), 1.0 / len(UNMODELLED_CLASSES)))
+    _, res, _, _, pi, _ = _classify(volume, first, cfg, unmodelled, sample_mm=cfg.first_pass_sample_of())
+    log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
+             [Tissue(c).name.lower() for c in UNMODELLED_CLASSES], np.round(pi, 3).tolist())
+    return res, pi
+
+
 def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     """`classify`, also returning the learnt unmodelled-region proportions (None without) and the EM's
     sample: its data, bias coordinates and grid affine (for `_refine_warp`), and the EM's data on the
     full grid (for the steps after the EM that judge intensities by its Gaussians)."""
-    first, equal_start = priors, unmodelled is not None and cfg.unmodelled_start_of() == "equal"
-    if equal_start:
-        equal = np.full(len(UNMODELLED_CLASSES), 1.0 / len(UNMODELLED_CLASSES))
-        first = with_proportions(np.asarray(priors), unmodelled, equal)
-    first_mm = cfg.first_pass_sample_of() if unmodelled is not None else None  # a first pass
-    post, res, opts, coords, pi, sample = _classify(volume, first, cfg, unmodelled, sample_mm=first_mm)
-    if unmodelled is not None:
-        log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
-                 [Tissue(c).name.lower() for c in UNMODELLED_CLASSES], np.round(pi, 3).tolist())
-        # The second EM starts from its own start on the new priors, not from where the first stopped: the
-        # first only has to learn `pi`, so it may sample more sparsely (`first_pass_sample_mm`); warm-started,
-        # the second EM inherited the first's end point (from the placeholder start its scalp class keeps
-        # some of the region's bone: CT 2 mm, ANTs head, skull 0.985 -> 0.973; from equal shares at a 3 or 4 mm
-        # first pass it lost a met row, experiments/results/segmentation_first_pass.md).
-        post, res, opts, coords, _, sample = _classify(volume, with_proportions(np.asarray(priors), unmodelled, pi),
-                                                       cfg)
+    if unmodelled is None:
+        return _classify(volume, priors, cfg)
+    _, pi = _first_pass(volume, priors, cfg, unmodelled)
+    # The second EM starts from its own start on the new priors, not from where the first stopped: the first
+    # only has to learn `pi`, so it may sample more sparsely (`first_pass_sample_mm`). Warm-started, the second
+    # EM inherited the first's end point: from the placeholder start its scalp class kept some of the region's
+    # bone (CT 2 mm, ANTs head: skull 0.985 -> 0.973); from equal shares, with the first pass at 3 or 4 mm, a
+    # met row was lost (experiments/results/segmentation_first_pass.md).
+    post, res, opts, coords, _, sample = _classify(volume, with_proportions(np.asarray(priors), unmodelled, pi), cfg)
     return post, res, opts, coords, pi, sample
 
 
