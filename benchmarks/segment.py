@@ -194,7 +194,7 @@ def main():
                       lambda f: (vol, unmodelled, pi, f, cfg)))
     if cfg.layer_split_on():  # on for MRI
         later.append(("layer split", "the CSF/skull change point in depth learnt from the scan", split,
-                      lambda f: (vol, np.asarray(kept["priors"]), unmodelled, pi, f[:4], cfg)))
+                      lambda f: (vol, np.asarray(kept["priors"]), unmodelled, pi, f, cfg)))
         if cfg.csf_inside_tables_on():
             later.append(("csf inside tables after the split", "again, on the split's priors", _csf_inside_tables,
                           lambda f: (vol, np.array(kept["split"], np.float32, copy=True), None, None, f, cfg)))
@@ -228,33 +228,25 @@ def main():
     mu = np.asarray(res.params.means, np.float32)
     var = np.asarray(res.params.variances, np.float32)
     w = np.asarray(res.params.weights, np.float32)
-    sl = tuple(slice(None, None, s) for s in stride)
-    ys, ps = y[sl], pri[(slice(None),) + sl]
-    t, c = time.perf_counter(), time.process_time()
-    q = ps.copy()
-    for _ in range(2):
-        q, _, _ = numpy_em_iteration(ys, ps, q, mu, var, w, cc, opts.beta)
-    t_np_iter = (time.perf_counter() - t) / 2
-    t = time.perf_counter()
-    q = pri.copy()
-    for _ in range(2):
-        q, _, _ = numpy_em_iteration(y, pri, q, mu, var, w, cc, opts.beta)
-    t_np_sweep = (time.perf_counter() - t) / 2
+
+    def numpy_seconds(sample_mm):
+        """Wall and CPU seconds of one NumPy EM iteration on the `sample_mm` sample (0: the full grid), mean of 2."""
+        sl = tuple(slice(None, None, s) for s in sample_stride(sample_mm, voxel_sizes(vol.affine))) if sample_mm else ()
+        ys, ps = y[sl], pri[(slice(None),) + sl]
+        t, c = time.perf_counter(), time.process_time()
+        q = ps.copy()
+        for _ in range(2):
+            q, _, _ = numpy_em_iteration(ys, ps, q, mu, var, w, cc, opts.beta)
+        return (time.perf_counter() - t) / 2, (time.process_time() - c) / 2
+
+    (t_np_iter, c_iter), (t_np_sweep, c_sweep) = numpy_seconds(cfg.em_sample_mm), numpy_seconds(0)
     n_sweeps = (2 * cfg.sweeps + 1) if any(s > 1 for s in stride) else 0
-    t_np = n_iter * t_np_iter + n_sweeps * t_np_sweep
-    c_np = (time.process_time() - c) / (t_np_iter + t_np_sweep) / 2 * t_np  # CPU/wall of the NumPy runs
+    t_np, c_np = n_iter * t_np_iter + n_sweeps * t_np_sweep, n_iter * c_iter + n_sweeps * c_sweep
     first = ""
     if unmodelled is not None:  # the first EM (its iterations, on its own sample), counted on the NumPy side too
         n_first = int(_first_pass(vol, priors, cfg, unmodelled)[0].n_iter)
-        sl1 = tuple(slice(None, None, s) for s in sample_stride(cfg.first_pass_sample_of(), voxel_sizes(vol.affine)))
-        ys1, ps1 = y[sl1], pri[(slice(None),) + sl1]
-        t, c = time.perf_counter(), time.process_time()
-        q = ps1.copy()
-        for _ in range(2):
-            q, _, _ = numpy_em_iteration(ys1, ps1, q, mu, var, w, cc, opts.beta)
-        t_np_first = (time.perf_counter() - t) / 2
-        t_np += n_first * t_np_first
-        c_np += n_first * (time.process_time() - c) / 2
+        t_np_first, c_first = numpy_seconds(cfg.first_pass_sample_of())
+        t_np, c_np = t_np + n_first * t_np_first, c_np + n_first * c_first
         first = f", first EM {n_first} iterations x {t_np_first:.2f} s on its {cfg.first_pass_sample_of():g} mm sample"
     print(f"NumPy baseline (same model, float32): {t_np_iter:.2f} s per EM iteration on the sample "
           f"({n_iter} iterations), {t_np_sweep:.2f} s per full-grid sweep{first} -> {t_np:.1f} s for the same work")

@@ -883,6 +883,18 @@ def _em_data_noise(volume: Volume, modality: str, denoise: bool = False, rician:
     return np.log(np.maximum(d, 1e-3 * p99)), rician_sd
 
 
+def _scan_em_data(volume: Volume, cfg: SegmentConfig):
+    """`_em_data_noise` as `cfg` says (denoised or not; the Rician sd from the air where the noise floor is on):
+    the EM's data on the full grid, as a read-only view, and the noise sd. Computed once per segmentation and
+    handed on in the fit (`_classify`'s sample, 5th item): ~0.1 s a call on a 1 mm head, six calls per MRI."""
+    denoise = DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
+    floor_on = DEFAULT_NOISE_FLOOR[cfg.modality] if cfg.noise_floor is None else cfg.noise_floor
+    y, sd = _em_data_noise(volume, cfg.modality, denoise, rician=floor_on)
+    y = np.asarray(y).view()
+    y.setflags(write=False)  # shared by the steps of a segmentation (a view: a CT's array itself stays writable)
+    return y, sd
+
+
 def _dtype(cfg: SegmentConfig):
     dtype = jnp.float32 if cfg.precision == "float32" else jnp.float64
     if dtype == jnp.float64 and not jax.config.jax_enable_x64:
@@ -1144,15 +1156,15 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
     return _classify_all(volume, priors, cfg, unmodelled)[:4]
 
 
-def _first_pass(volume: Volume, priors, cfg: SegmentConfig, unmodelled):
+def _first_pass(volume: Volume, priors, cfg: SegmentConfig, unmodelled, data=None):
     """`classify`'s first EM where the atlas models no bone (`unmodelled`), on the `first_pass_sample_of()` sample,
     from equal skull/scalp shares there or the atlas's placeholder (`unmodelled_start_of()`). Returns (its
-    EMResult, the shares of UNMODELLED_CLASSES it learnt there)."""
+    EMResult, the shares of UNMODELLED_CLASSES it learnt there). `data`: as `_classify`'s."""
     first = priors
     if cfg.unmodelled_start_of() == "equal":
         first = with_proportions(np.asarray(priors), unmodelled,
                                  np.full(len(UNMODELLED_CLASSES), 1.0 / len(UNMODELLED_CLASSES)))
-    _, res, _, _, pi, _ = _classify(volume, first, cfg, unmodelled, sample_mm=cfg.first_pass_sample_of())
+    _, res, _, _, pi, _ = _classify(volume, first, cfg, unmodelled, sample_mm=cfg.first_pass_sample_of(), data=data)
     log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
              [Tissue(c).name.lower() for c in UNMODELLED_CLASSES], np.round(pi, 3).tolist())
     return res, pi
@@ -1164,13 +1176,15 @@ def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
     full grid (for the steps after the EM that judge intensities by its Gaussians)."""
     if unmodelled is None:
         return _classify(volume, priors, cfg)
-    _, pi = _first_pass(volume, priors, cfg, unmodelled)
+    data = _scan_em_data(volume, cfg)
+    _, pi = _first_pass(volume, priors, cfg, unmodelled, data)
     # The second EM starts from its own start on the new priors, not from where the first stopped: the first
     # only has to learn `pi`, so it may sample more sparsely (`first_pass_sample_mm`). Warm-started, the second
     # EM inherited the first's end point: from the placeholder start its scalp class kept some of the region's
     # bone (CT 2 mm, ANTs head: skull 0.985 -> 0.973); from equal shares, with the first pass at 3 or 4 mm, a
     # met row was lost (experiments/results/segmentation_first_pass.md).
-    post, res, opts, coords, _, sample = _classify(volume, with_proportions(np.asarray(priors), unmodelled, pi), cfg)
+    post, res, opts, coords, _, sample = _classify(volume, with_proportions(np.asarray(priors), unmodelled, pi), cfg,
+                                                   data=data)
     return post, res, opts, coords, pi, sample
 
 
@@ -1188,7 +1202,7 @@ def sample_stride(em_sample_mm: float, voxel_mm) -> tuple[int, ...]:
     return tuple(max(1, int(round(em_sample_mm / float(v)))) for v in voxel_mm)
 
 
-def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=None, sample_mm=None):
+def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=None, sample_mm=None, data=None):
     """`classify` with one set of priors. With `unmodelled` (a first pass), the proportions of
     UNMODELLED_CLASSES in that region instead of the posteriors (None): `atlas.regional_proportions`
     of the class likelihoods at the fitted parameters (posteriors under a uniform prior, no MRF, no
@@ -1197,7 +1211,9 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=
     as well determined from every k-th voxel, and at 1 mm the full grid costs seconds (profiled on
     the case of benchmarks/segment.py: 4.4 s of 17 s of `classify`). `init`: the EM's starting
     MixtureParams (a fit on other priors, for the steps that run it again); None: the atlas-weighted
-    quantiles of the scan (`em.fit_mixture`). `sample_mm`: the EM's sampling distance (None: `cfg.em_sample_mm`)."""
+    quantiles of the scan (`em.fit_mixture`). `sample_mm`: the EM's sampling distance (None: `cfg.em_sample_mm`).
+    `data`: `_scan_em_data(volume, cfg)` if already computed (None: computed here); returned as the sample's
+    5th item."""
     dtype = _dtype(cfg)
     vox = voxel_sizes(volume.affine)
     stride = sample_stride(cfg.em_sample_mm if sample_mm is None else sample_mm, vox)
@@ -1206,9 +1222,9 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=
     shape = volume.shape
     padded = tuple(-(-n // (8 * s)) * 8 * s for n, s in zip(shape, stride))
     pad = [(0, p - n) for p, n in zip(padded, shape)]
-    denoise = DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
     floor_on = DEFAULT_NOISE_FLOOR[cfg.modality] if cfg.noise_floor is None else cfg.noise_floor
-    y, sd = _em_data_noise(volume, cfg.modality, denoise, rician=floor_on)
+    data = _scan_em_data(volume, cfg) if data is None else data
+    y, sd = data
     y_full = jnp.asarray(np.pad(y, pad, mode="edge"), dtype)
     nfloor = _noise_floor(sd) if floor_on else None
     if nfloor is not None:
@@ -1240,7 +1256,7 @@ def _classify(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, init=
         post = infer_posteriors(y_full, priors, res.params, opts_full, cfg.sweeps, coords_full)
         post = np.asarray(post[crop], dtype=np.float32)
     sample_affine = np.asarray(volume.affine, np.float64) @ np.diag([*stride, 1.0])
-    sample = (y_full[sl], coords_s, sample_affine, y_full[crop[1:]])
+    sample = (y_full[sl], coords_s, sample_affine, y_full[crop[1:]], data)
     return post, res, opts, tuple(c[:n] for c, n in zip(coords_full, shape)), pi, sample
 
 
@@ -1309,7 +1325,7 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
         summary["csf_inside_tables"] = {"before_layer_split": inside}
     if cfg.layer_split_on():
         # the split's priors are kept only for csf_inside_tables (5 x the grid in float32: 140 MB at 1 mm)
-        split = _layer_split(volume, np.asarray(priors), unmodelled, pi, (post, res, opts, coords), cfg,
+        split = _layer_split(volume, np.asarray(priors), unmodelled, pi, (post, res, opts, coords, pi, sample), cfg,
                              return_priors=cfg.csf_inside_tables_on(), given_back=given_back)
         (post, res, opts, coords, pi, sample), summary["layer_split"] = split[:2]
         if cfg.csf_inside_tables_on():  # the split shares CSF + skull afresh by depth: look again after it
@@ -1358,7 +1374,8 @@ def _refine_warp(volume: Volume, atlas: Atlas, transform: BSplineTransform, fit,
     scale = cfg.warp_change_scale()
 
     def make_problem(tr, fit):
-        _, res, opts, _, pi, (y_s, coords_s, sample_affine, _) = fit
+        _, res, opts, _, pi, sample = fit
+        y_s, coords_s, sample_affine = sample[:3]
         priors = atlas.priors if pi is None else with_proportions(atlas.priors, atlas.unmodelled, pi)
         return warp_problem(y_s, coords_s, res.params, res.posteriors, opts, priors, atlas.affine, tr,
                             sample_affine, cfg.register.bending_energy, stride, anchor, scale)
@@ -1476,7 +1493,7 @@ def _refit_with_prior_moved(volume: Volume, priors: np.ndarray, mask, src: Tissu
     priors[dst][mask] += priors[src][mask]
     priors[src][mask] = 0.0
     first = with_proportions(priors, unmodelled, pi) if pi is not None else priors
-    new = _classify(volume, first, cfg, init=None if fresh else fit[1].params)
+    new = _classify(volume, first, cfg, init=None if fresh else fit[1].params, data=_fit_data(fit))
     return new[:4] + (pi,) + new[5:]
 
 
@@ -1487,12 +1504,19 @@ def enclosed_background(labels: np.ndarray) -> np.ndarray:
     return bg & enclosed(~bg, np.zeros_like(bg))
 
 
+def _fit_data(fit):
+    """The EM data a fit was computed on (`_classify`'s sample, 5th item; `_scan_em_data`), None where `fit` is
+    (posteriors, EMResult, EMOptions, coords) without its sample."""
+    return fit[5][4] if len(fit) > 5 else None
+
+
 def corrected_em_data(volume: Volume, fit, cfg: SegmentConfig) -> np.ndarray:
     """The EM's data of `volume` (`_em_data_noise`, denoised as `cfg` says) less the bias field of `fit`
-    ((posteriors, EMResult, EMOptions, coords, ...)), float64: what the fitted Gaussian means describe."""
+    ((posteriors, EMResult, EMOptions, coords, ...)), float64: what the fitted Gaussian means describe. Without a
+    bias field it is the fit's shared EM data itself (read-only)."""
     _, res, opts, coords = fit[:4]
-    denoise = DEFAULT_DENOISE[cfg.modality] if cfg.denoise is None else cfg.denoise
-    y, _ = _em_data_noise(volume, cfg.modality, denoise)
+    data = _fit_data(fit)
+    y = (_scan_em_data(volume, cfg) if data is None else data)[0]
     if opts.bias_degree > 0:
         y = y - np.asarray(bias_field(res.params.bias, coords, opts.bias_degree), dtype=np.float64)
     return y
@@ -1669,13 +1693,13 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     """The EM again on priors whose CSF/skull split is a step at the change point in depth learnt from
     the scan (`depth_prior.fit_layer_split` on the bias-corrected EM data, in the CSF + skull band of
     `fit`; `with_local_split`), after the learnt proportions `pi` (None: none) where the atlas models no
-    bone. `fit` is (posteriors, EMResult, EMOptions, coords). `given_back`: the voxels whose skull prior
+    bone. `fit` is (posteriors, EMResult, EMOptions, coords[, pi, sample]) (with the sample its EM data is reused). `given_back`: the voxels whose skull prior
     `_marrow_inside_skull` gave to the scalp without running the EM (its `defer_mirror`), None: none; they count
     as scalp here, and the EM starts from its own start (the mirror's reason), not from `fit`'s parameters.
     Returns (`_classify_all`'s output, summary for the run report), and with `return_priors` the priors its EM
     ran on (float32, the proportions applied)."""
     t0 = time.perf_counter()
-    post, res, opts, coords = fit
+    post, res, opts, coords = fit[:4]
     labels = class_argmax(post)
     if given_back is not None:
         labels[given_back] = Tissue.SCALP
@@ -1698,7 +1722,7 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     # started from the first EM's fit (only the CSF/skull priors changed): fewer iterations than from quantiles;
     # after a deferred mirror from the EM's own start, as the mirror's EM would have
     split_priors = with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH)
-    new = _classify(volume, split_priors, cfg, init=res.params if given_back is None else None)
+    new = _classify(volume, split_priors, cfg, init=res.params if given_back is None else None, data=_fit_data(fit))
     new = new[:4] + (pi,) + new[5:]
     summary.update(window_mm=LAYER_SPLIT_MM, width=LAYER_SPLIT_WIDTH,
                    relabelled_fraction=round(float((class_argmax(new[0]) != labels).mean()), 4),
