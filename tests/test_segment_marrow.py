@@ -12,7 +12,7 @@ from jaxhead.segmentation import SegmentConfig
 from jaxhead.segmentation.atlas import Atlas
 from jaxhead.segmentation.register import RegisterConfig
 from jaxhead.segmentation.segment import (MARROW_MIN_SHARE, bright_skull_outside_tables, dice_scores, enclosed,
-                                          marrow_enclosed, segment_reported, tables_cut)
+                                          marrow_enclosed, segment_reported, table_dark_cut, tables_cut)
 from jaxhead.tissue import Tissue
 from jaxhead.volume import LabelMap, Volume
 
@@ -277,9 +277,10 @@ def test_bright_skull_outside_tables_is_the_fat_not_the_marrow(outer_table):
 
 
 def _fit_with(gaussians):
-    """A stand-in for a fit's (posteriors, EMResult, EMOptions): `gaussians` is [(class, mean, weight), ...]."""
-    cls, means, weights = (np.array(v) for v in zip(*gaussians))
-    res = SimpleNamespace(params=SimpleNamespace(means=means, weights=weights))
+    """A stand-in for a fit's (posteriors, EMResult, EMOptions): `gaussians` is [(class, mean, weight), ...] or
+    [(class, mean, weight, variance), ...] (variance 0.01 where not given)."""
+    cls, means, weights, variances = (np.array(v) for v in zip(*[(*g, 0.01)[:4] for g in gaussians]))
+    res = SimpleNamespace(params=SimpleNamespace(means=means, weights=weights, variances=variances))
     return None, res, SimpleNamespace(component_class=cls)
 
 
@@ -295,3 +296,51 @@ def test_tables_cut_only_for_a_skull_with_a_fat_bright_gaussian():
     # a brain Gaussian that has emptied is not the brain's darkest: counted, it would let a skull Gaussian
     # darker than all the brain's live ones pass as fat
     assert tables_cut(_fit_with([(BRAIN, -0.4, 0.0), (BRAIN, 0.2, 1.0), (SKULL, -2.1, 0.5), (SKULL, 0.1, 0.5)])) is None
+
+
+def _labels_with_scalp_labelled_outer_table():
+    """Nested shells (1 mm) and log-T1 intensities: brain to 12, CSF to 14, inner table (skull) to 16, fat-bright
+    marrow labelled scalp to 19, an outer table labelled SCALP (as dark as bone) to 21, scalp to 25, a skin layer
+    at its partial volume with air (as dark as bone, labelled scalp) to 26, air outside: the scalp class took
+    the outer table with the dark Gaussian it keeps for the skin's partial volume."""
+    n = 60
+    i = np.arange(n) - (n - 1) / 2
+    r = np.sqrt(i[:, None, None] ** 2 + i[None, :, None] ** 2 + i[None, None, :] ** 2)
+    lab = _shells(r, [12, 14, 16, 19, 21, 26], [BRAIN, CSF, SKULL, SCALP, SCALP, SCALP, BG]).astype(np.uint8)
+    y = _shells(r, [12, 14, 16, 19, 21, 25, 26], np.log([T1["wm"], T1["csf"], T1["bone"], T1["fat"], T1["bone"],
+                                                          T1["skin"], T1["bone"], 0.02]))
+    return lab, y, r
+
+
+def test_marrow_enclosed_walls_scalp_as_dark_as_bone_that_does_not_touch_the_air():
+    """The outer table labelled scalp, dark: a wall (the marrow inside it is enclosed, the table itself is not
+    marrow); the skin's dark partial volume touches the air, so it is no wall and the scalp between the two stays
+    outside. Without the dark voxels given, the marrow's rays run out through the scalp-labelled table."""
+    lab, y, r = _labels_with_scalp_labelled_outer_table()
+    marrow, table, scalp, skin = (r >= 16) & (r < 19), (r >= 19) & (r < 21), (r >= 21) & (r < 25), (r >= 25) & (r < 26)
+    dark = (lab == SCALP) & (y < np.log(0.2))
+    assert dark[table].all() and dark[skin].all()
+    inside = marrow_enclosed(lab, dark)
+    assert inside[marrow].all() and not inside[table | scalp | skin].any()
+    assert not marrow_enclosed(lab)[marrow].any()
+    # a dark skin layer two voxels thick is still no wall: it touches the air
+    thick = (lab == SCALP) & (r >= 24) & (r < 26)
+    inside2 = marrow_enclosed(lab, dark | thick)
+    assert inside2[marrow].all() and not inside2[scalp].any()
+    # a dark bridge from the outer table out to the skin (a 3 x 3 voxel tube along +z) does not open the table:
+    # only its voxels within SKIN_LAYER_MM of the air are skin, so the marrow stays enclosed
+    c = np.arange(r.shape[0]) - (r.shape[0] - 1) / 2
+    tube = (np.abs(c)[:, None, None] <= 1) & (np.abs(c)[None, :, None] <= 1) & (c[None, None, :] > 0)
+    bridged = marrow_enclosed(lab, dark | (tube & (lab == SCALP) & (r >= 19)))
+    assert bridged[marrow].all() and not bridged[scalp].any()
+
+
+def test_table_dark_cut_is_the_darkest_live_skull_gaussians_upper_end():
+    """mean + 2 sd of the skull's darkest Gaussian with at least MARROW_MIN_SHARE of the class's weight; an
+    emptied darker one does not count; no live skull Gaussian: None."""
+    brain = [(BRAIN, -0.4, 1.0, 0.01)]
+    assert table_dark_cut(_fit_with(brain + [(SKULL, -2.1, 0.5, 0.09), (SKULL, 0.1, 0.5, 0.04)])) == \
+        pytest.approx(-2.1 + 2 * 0.3)
+    assert table_dark_cut(_fit_with(brain + [(SKULL, -3.0, 0.005, 0.01), (SKULL, -1.5, 0.995, 0.16)])) == \
+        pytest.approx(-1.5 + 2 * 0.4)
+    assert table_dark_cut(_fit_with(brain + [(SKULL, -2.0, 0.0, 0.01)])) is None

@@ -335,6 +335,12 @@ MARROW_MAX_VOXEL_MM = 1.5
 #: skull, 64 % of the MNI152 head's); the MNI152 head's first round at 1 mm, 8 %, moves 73k voxels against
 #: about 0.5 million labelled skull.
 MARROW_MIN_SHARE = 0.01
+#: `marrow_enclosed`: scalp-labelled voxels as dark as compact bone within this distance of the air (through dark
+#: voxels) are the skin's partial volume with air, not an outer table (mm; a partial-volume layer is a voxel or
+#: two deep). Farther in, they wall the marrow as the skull does. Session 31: geodesic, because a dark piece that
+#: touches the air anywhere is not the test: on the MNI152 head cut at the neck (adult marrow, 3 %, 1 mm) the
+#: outer table the scalp class took joins the air somewhere, and with whole pieces the marrow found nothing.
+SKIN_LAYER_MM = 2.0
 #: the neighbourhood that shares one CSF/skull change point (Gaussian window sd, mm) and the width (in
 #: normalised depth) of the prior's step at it. Measured at 2 mm (same file): window 4 / 6 / 8 / 12 mm
 #: gives the 8 % CSF minima 0.734 / 0.735 / 0.731 / 0.713 (ANTs) and 0.792 / 0.789 / 0.774 / 0.739
@@ -1455,7 +1461,8 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
         skull = labels == Tissue.SKULL
         if not (skull.any() and ((labels == Tissue.SCALP) & ~total).any()):  # no skull, or no scalp left to give
             break
-        inside = marrow_enclosed(labels) & ~total
+        dark = _table_dark(labels, corrected_em_data(volume, fit, cfg), table_dark_cut(fit))
+        inside = marrow_enclosed(labels, dark, vox) & ~total
         if inside.sum() < MARROW_MIN_SHARE * skull.sum():  # none, or speckle
             below = int(inside.sum())
             break
@@ -1522,24 +1529,62 @@ def corrected_em_data(volume: Volume, fit, cfg: SegmentConfig) -> np.ndarray:
     return y
 
 
-def marrow_enclosed(labels: np.ndarray) -> np.ndarray:
+def marrow_enclosed(labels: np.ndarray, dark: np.ndarray | None = None, voxel_mm: float = 1.0) -> np.ndarray:
     """Scalp-labelled voxels that the segmented skull encloses (`marrow_inside_skull`): every one of the 26
     grid rays (`enclosed`) meets skull, or background that tissue encloses, before background that a ray can
     leave the grid through. Background that tissue encloses is bone as dark as air (a compact table labelled
-    background): a way out for no ray, so it walls the marrow as the skull does.
+    background): a way out for no ray, so it walls the marrow as the skull does. So do scalp-labelled voxels
+    as dark as compact bone (`dark`, `_table_dark`) farther than SKIN_LAYER_MM from that way out (through dark
+    voxels): an outer table the scalp class took with its dark Gaussian (the one it keeps for the skin's partial
+    volume with air, the dark layer that touches the air). Such walls are not marrow.
 
     Arguments:
         labels: (x, y, z) Tissue labels.
+        dark: optional (x, y, z) boolean: voxels as dark as compact bone (None: none).
+        voxel_mm: the grid's coarsest voxel side (mm), for SKIN_LAYER_MM.
     Returns:
         (x, y, z) boolean.
     """
     labels = np.asarray(labels)
-    return _marrow_enclosed(labels, enclosed_background(labels))
+    return _marrow_enclosed(labels, enclosed_background(labels), dark, voxel_mm)
 
 
-def _marrow_enclosed(labels: np.ndarray, held: np.ndarray) -> np.ndarray:
+def _marrow_enclosed(labels: np.ndarray, held: np.ndarray, dark: np.ndarray | None = None,
+                     voxel_mm: float = 1.0) -> np.ndarray:
     """`marrow_enclosed` with the background that tissue encloses (`enclosed_background(labels)`) given."""
-    return (labels == Tissue.SCALP) & enclosed((labels == Tissue.SKULL) | held, (labels == Tissue.BACKGROUND) & ~held)
+    scalp, escape = labels == Tissue.SCALP, (labels == Tissue.BACKGROUND) & ~held
+    wall = (labels == Tissue.SKULL) | held
+    if dark is not None and (dark := np.asarray(dark, bool) & scalp).any():
+        wall = wall | (dark & ~_skin_layer(dark, escape, voxel_mm))
+    return scalp & ~wall & enclosed(wall, escape)
+
+
+def _skin_layer(dark: np.ndarray, escape: np.ndarray, voxel_mm: float) -> np.ndarray:
+    """The voxels of `dark` within SKIN_LAYER_MM of `escape` through `dark` (geodesic, 26-neighbourhood steps of
+    the coarsest voxel side `voxel_mm`, at least one step)."""
+    cube = np.ones((3, 3, 3), bool)
+    reach = ndimage.binary_dilation(escape, cube) & dark
+    for _ in range(max(1, int(np.ceil(SKIN_LAYER_MM / voxel_mm))) - 1):
+        reach = ndimage.binary_dilation(reach, cube) & dark
+    return reach
+
+
+def table_dark_cut(fit) -> float | None:
+    """The upper end of compact bone's intensity in `fit` ((posteriors, EMResult, EMOptions, ...)), EM data units:
+    the mean + 2 sd of the skull class's darkest live Gaussian (`_live_means`' share), which describes the tables
+    (compact bone is dark in every MR contrast). None without a live skull Gaussian."""
+    _, res, opts = fit[:3]
+    means, var, w = (np.asarray(a, np.float64) for a in (res.params.means, res.params.variances, res.params.weights))
+    live = (w >= MARROW_MIN_SHARE) & (np.asarray(opts.component_class) == int(Tissue.SKULL))
+    if not live.any():
+        return None
+    j = np.flatnonzero(live)[np.argmin(means[live])]
+    return float(means[j] + 2.0 * np.sqrt(var[j]))
+
+
+def _table_dark(labels: np.ndarray, y, cut: float | None) -> np.ndarray | None:
+    """Scalp-labelled voxels of `labels` darker than `cut` (`table_dark_cut`; None: None)."""
+    return None if cut is None else (np.asarray(labels) == Tissue.SCALP) & (np.asarray(y) < cut)
 
 
 def _csf_inside_tables(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: SegmentConfig):
