@@ -494,7 +494,8 @@ class SegmentConfig:
             CSF + skull prior by a step at it (`depth_prior.with_local_split`) and run the EM again.
             None: the modality default (DEFAULT_LAYER_SPLIT: on for MRI); True with a CT is an error.
         marrow_inside_skull: MRI: after the EM (and the depth prior), before the layer split, scalp-labelled
-            voxels that the segmented skull encloses (`marrow_enclosed`) get the skull's prior and the EM runs
+            voxels that the segmented skull encloses (`marrow_enclosed`; scalp as dark as the tables, deeper than
+            SKIN_LAYER_MM, walls the marrow like the skull) get the skull's prior and the EM runs
             again, up to MARROW_ROUNDS times (DEFAULT_MARROW_INSIDE_SKULL's comment: an adult's marrow is
             as bright as fat); skipped, and said so in the report, on voxels coarser than
             MARROW_MAX_VOXEL_MM. None: the modality default (on for MRI); True with a CT is an error.
