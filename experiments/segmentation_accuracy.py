@@ -66,7 +66,7 @@ def dice_per_tissue(labels: np.ndarray, truth: np.ndarray) -> dict[str, float]:
 
 
 def cases(modality: str, voxel_mm: float, n_seeds: int, heads: Path, self_atlas: bool = False,
-          diploe: bool = False, fatty: bool = False, fov_mm=None):
+          diploe: bool = False, fatty: bool = False, fov_mm=None, psf_fwhm_mm: float = 0.0, phantom: bool = True):
     """(anatomy, atlas, noise, contrast, volume, truth) for every scan of one modality.
 
     self_atlas: the control that is *not* held out: each anatomy with an atlas built from itself (the
@@ -82,6 +82,10 @@ def cases(modality: str, voxel_mm: float, n_seeds: int, heads: Path, self_atlas:
     on it as a scan is (`templates.on_scan_grid`: centred, the top of the head 5 voxels below the grid's top,
     the neck and whatever else does not fit cut off), and the truth with them. None: each head's own grid (its
     whole neck). The phantom family keeps its own grid.
+    psf_fwhm_mm: the real heads' scans blurred by a scanner's point-spread function of this FWHM (mm;
+    `templates.render`'s `psf_fwhm_mm`, before bias and noise); 0: each voxel its box average alone. The phantom
+    family's scans (its own generator) are not blurred.
+    phantom: include the phantom family's scans.
     """
     ants = ants_anatomy(heads)
     mni = mni152_anatomy()
@@ -100,9 +104,9 @@ def cases(modality: str, voxel_mm: float, n_seeds: int, heads: Path, self_atlas:
                 contrast = None if seed == 0 else random_contrast(modality, np.random.default_rng(seed))
                 if fatty and modality == "mri":
                     contrast = fatty_marrow(contrast)
-                vol = render(a, modality, contrast=contrast, noise=noise, bias=bias, seed=seed)
+                vol = render(a, modality, contrast=contrast, noise=noise, bias=bias, seed=seed, psf_fwhm_mm=psf_fwhm_mm)
                 yield name, atlas, noise, "default" if seed == 0 else f"random {seed}", vol, truth
-    for noise in PHANTOM_NOISE[modality]:
+    for noise in PHANTOM_NOISE[modality] if phantom else ():
         for seed in range(n_seeds):
             vol, lab = make_head(modality, voxel_mm=voxel_mm, noise=noise, seed=seed)
             yield "phantom", atlas_phantom, noise, f"seed {seed}", vol, lab.labels
@@ -116,7 +120,9 @@ def run(args) -> list[dict]:
                                                                 getattr(args, "self_atlas", False),
                                                                 getattr(args, "diploe", False),
                                                                 getattr(args, "fatty_marrow", False),
-                                                                getattr(args, "fov_mm", None)):
+                                                                getattr(args, "fov_mm", None),
+                                                                getattr(args, "psf_mm", 0.0),
+                                                                not getattr(args, "no_phantom", False)):
             t = time.perf_counter()
             try:
                 labels, seg = segment_reported(vol, atlas, cfg)
@@ -186,8 +192,15 @@ def main(argv=None):
     p.add_argument("--fov-mm", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                    help="the real heads on a scan's field of view (mm, e.g. 181 217 181): centred, the neck cut "
                         "(templates.on_scan_grid); default: each head's own grid")
+    p.add_argument("--psf-mm", type=float, default=0.0,
+                   help="the real heads' scans blurred by a scanner's point-spread function of this FWHM (mm; "
+                        "templates.render's psf_fwhm_mm); default 0: each voxel its box average alone")
+    p.add_argument("--no-phantom", action="store_true",
+                   help="leave the phantom family's scans out (they do not take --psf-mm)")
     p.add_argument("--out", default=None, help="path stem: write <out>.json and <out>.md, atomically")
     args = p.parse_args(argv)
+    if not (np.isfinite(args.psf_mm) and args.psf_mm >= 0):
+        p.error(f"--psf-mm must be a finite number >= 0 (mm), got {args.psf_mm}")
     if args.fatty_marrow and not args.diploe:
         p.error("--fatty-marrow sets the marrow's intensity: it needs --diploe (the real heads have no marrow without it)")
     args.partial = (args.out[:-5] if args.out.endswith(".json") else args.out) + ".partial.json" if args.out else None
@@ -205,7 +218,10 @@ def main(argv=None):
             + ("MRI marrow AS BRIGHT AS FAT (--fatty-marrow; the phantom family keeps its own), "
                if args.fatty_marrow else "")
             + (f"real heads ON A {' x '.join(f'{f:g}' for f in args.fov_mm)} mm FIELD OF VIEW, NECK CUT (--fov-mm; "
-               "the phantom family keeps its own grid), " if args.fov_mm else "") +
+               "the phantom family keeps its own grid), " if args.fov_mm else "")
+            + (f"real heads BLURRED BY A {args.psf_mm:g} mm FWHM POINT-SPREAD FUNCTION (--psf-mm; the phantom "
+               "family's scans are not), " if args.psf_mm else "")
+            + ("NO PHANTOM ROWS (--no-phantom), " if args.no_phantom else "") +
             f"{args.voxel_mm:g} mm voxels, atlases 2 mm; noise: MRI Rician sd / white matter (phantom: its "
             f"own definition), CT HU; MRI bias field up to +-20 %. Bars (minimum): MRI 0.93/0.75/0.85/0.93, "
             f"CT 0.93/0.65/0.90/0.93 (brain/CSF/skull/scalp). Run: {wall:.0f} s wall, {cpu:.0f} s CPU, "
@@ -215,8 +231,8 @@ def main(argv=None):
     if args.out:
         stem = args.out[:-5] if args.out.endswith(".json") else args.out
         os.makedirs(os.path.dirname(os.path.abspath(stem)), exist_ok=True)
-        meta = dict(voxel_mm=args.voxel_mm, seeds=args.seeds, modalities=args.modalities, wall_s=wall, cpu_s=cpu,
-                    command=command)
+        meta = dict(voxel_mm=args.voxel_mm, seeds=args.seeds, modalities=args.modalities, psf_fwhm_mm=args.psf_mm,
+                    wall_s=wall, cpu_s=cpu, command=command)
         _write_atomic(stem + ".json", json.dumps(dict(meta=meta, rows=rows), indent=1))
         _write_atomic(stem + ".md", f"{head}\n\nCommand: `{command}`\n\n{table(rows)}\n")
         if args.partial and os.path.exists(args.partial):
