@@ -165,3 +165,48 @@ def test_a_first_segmentation_without_brain_is_a_clear_error():
     with pytest.raises(ValueError, match="labelled no brain voxel.*layer_split = false"):
         _layer_split(Volume(lab.astype(np.float64) + 1, np.eye(4)), post, None, None, (post, None, None, None),
                      SegmentConfig())
+
+
+def test_scalp_split_finds_the_outer_table_where_marrow_and_fat_look_alike():
+    """`scalp_split` on nested shells: a skull of two dark tables around a marrow as bright as the scalp's fat,
+    its outer surface moving with direction (4.5-9.5 mm thick), under a first segmentation that took a fixed
+    4 mm skull. The skull/scalp change point learnt in depth between brain + CSF and the air puts the skull's
+    share above one half on the true skull, which no intensity rule can (marrow and fat are one Gaussian), and
+    the skull + scalp mass is only shared between them."""
+    from jaxhead.segmentation.segment import _scalp_split
+
+    vox = 1.0
+    r, c = _radius_angle(72, vox)
+    r_out = 22.0 + 2.5 * c  # the skull's outer surface: 19.5-24.5 mm
+    inner, air = r < 15.0, r >= 31.0
+    skull = ~inner & (r < r_out)
+    tables = skull & ((r < 16.5) | (r >= r_out - 1.5))
+    rng = np.random.default_rng(4)
+    y = np.where(inner, 0.5, np.where(tables, 0.15, 1.0)) + rng.normal(0.0, 0.1, r.shape)
+    y[air] = rng.normal(0.0, 0.1, r.shape)[air]
+    labels = np.where(r < 13.0, Tissue.BRAIN, np.where(inner, Tissue.CSF, np.where(r < 19.0, Tissue.SKULL,
+                      np.where(air, Tissue.BACKGROUND, Tissue.SCALP))))
+    priors = np.stack([np.where(labels == k, 0.9, 0.025) for k in range(5)]).astype(np.float32)
+    out, summary = _scalp_split(labels, y, (vox,) * 3, priors)
+    band = ~inner & ~air
+
+    def dice(a, b):
+        return 2 * (a & b).sum() / (a.sum() + b.sum())
+
+    found = band & (out[Tissue.SKULL] > out[Tissue.SCALP])
+    assert dice(labels == Tissue.SKULL, skull) < 0.8  # the first segmentation's fixed skull
+    assert dice(found, skull) > 0.9, (dice(found, skull), summary)
+    np.testing.assert_allclose(out[3] + out[4], priors[3] + priors[4], atol=1e-6)
+    for k in (0, 1, 2):
+        np.testing.assert_array_equal(out[k], priors[k])
+    assert 0 < summary["skull_fraction"] < 1 and summary["iterations"] < 20
+
+
+def test_scalp_split_is_an_mri_option_inside_the_layer_split():
+    assert SegmentConfig(modality="mri").scalp_split_on() and not SegmentConfig(modality="ct").scalp_split_on()
+    assert not SegmentConfig(modality="mri", layer_split=False).scalp_split_on()
+    assert not SegmentConfig(modality="mri", scalp_split=False).scalp_split_on()
+    with pytest.raises(ValueError, match="scalp_split"):
+        SegmentConfig(modality="ct", scalp_split=True)
+    with pytest.raises(ValueError, match="`scalp_split` = true needs the layer split"):
+        SegmentConfig(modality="mri", layer_split=False, scalp_split=True)

@@ -114,16 +114,18 @@ def with_depth_profile(priors, labels: np.ndarray, voxel_mm, profile: np.ndarray
     """
     t = layer_depth(labels == Tissue.BRAIN, labels == Tissue.SCALP, voxel_mm)
     n = len(profile)
-    return _share_csf_skull(priors, np.interp(t, (np.arange(n) + 0.5) / n, profile))
+    return _share_pair(priors, np.interp(t, (np.arange(n) + 0.5) / n, profile))
 
 
-def _share_csf_skull(priors, p) -> np.ndarray:
-    """float32 priors whose CSF + skull mass is split p : 1 - p at each voxel; other classes unchanged."""
+def _share_pair(priors, p, classes=(Tissue.CSF, Tissue.SKULL)) -> np.ndarray:
+    """float32 priors whose mass of the two `classes` (inner, outer) is split p : 1 - p at each voxel; other
+    classes unchanged."""
     out = np.array(priors, np.float32)
     p = np.asarray(p, np.float32)
-    both = out[int(Tissue.CSF)] + out[int(Tissue.SKULL)]
-    out[int(Tissue.CSF)] = both * p
-    out[int(Tissue.SKULL)] = both * (1 - p)
+    a, b = (int(c) for c in classes)
+    both = out[a] + out[b]
+    out[a] = both * p
+    out[b] = both * (1 - p)
     return out
 
 
@@ -295,17 +297,20 @@ def fit_layer_split(y: np.ndarray, t: np.ndarray, band: np.ndarray, voxel_mm, si
     return upsample(coarse, t.shape, voxel_mm, sigma_mm), summary
 
 
-def with_local_split(priors, t: np.ndarray, tau: np.ndarray, width: float) -> np.ndarray:
-    """Priors whose CSF + skull mass at each voxel is shared by a logistic step in depth at the voxel's
-    change point: p(CSF) = 1 / (1 + exp((t - tau) / width)); the other classes are unchanged.
+def with_local_split(priors, t: np.ndarray, tau: np.ndarray, width: float,
+                     classes=(Tissue.CSF, Tissue.SKULL)) -> np.ndarray:
+    """Priors whose CSF + skull mass (or that of other `classes`, inner and outer) at each voxel is shared by a
+    logistic step in depth at the voxel's change point: p(inner) = 1 / (1 + exp((t - tau) / width)); the other
+    classes are unchanged.
 
     Arguments:
         priors: (5, x, y, z) class priors.
         t, tau: (x, y, z) normalised depth and change point (`fit_layer_split`).
         width: the step's width in t (> 0).
+        classes: the (inner, outer) pair that shares its mass (default CSF, skull; `scalp_split`: skull, scalp).
     Returns:
         (5, x, y, z) float32 priors.
     """
     if not width > 0:
         raise ValueError(f"with_local_split: `width` must be > 0, got {width}.")
-    return _share_csf_skull(priors, 0.5 * (1.0 + np.tanh((tau - t) / (2.0 * width))))  # the logistic, overflow-free
+    return _share_pair(priors, 0.5 * (1.0 + np.tanh((tau - t) / (2.0 * width))), classes)  # the logistic, overflow-free

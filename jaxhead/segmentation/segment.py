@@ -283,6 +283,14 @@ DEFAULT_DEPTH_PRIOR = {"mri": False, "ct": False}
 #: 0.967/0.707/0.828/0.963 -> 0.967/0.735/0.860/0.969, the 3 % rows within -0.006..+0.015. On CT the
 #: bone is bright, so intensity alone splits CSF from skull: an error with a CT.
 DEFAULT_LAYER_SPLIT = {"mri": True, "ct": False}
+#: `scalp_split` (with the layer split, in its EM): on for MRI. The layer split's idea one layer out: along the
+#: depth from the segmented brain + CSF to the air outside the head, skull lies inside the scalp, and where an
+#: adult's fat-bright marrow meets the scalp's fat only the tables between them tell the two apart; a
+#: scanner's point-spread function blurs those 1-2 mm tables until the ray rules of `marrow_inside_skull`
+#: (which need them closed) misfire. Session 32 (experiments/results/segmentation_scalp_split.md): the ANTs
+#: head with an adult's marrow, 1 mm, neck cut, 3 %, blurred by a PSF of 1.2 mm FWHM (`templates.render`'s
+#: `psf_fwhm_mm`): skull / scalp 0.545 / 0.864 -> 0.731 / 0.952; the tables there in that file.
+DEFAULT_SCALP_SPLIT = {"mri": True, "ct": False}
 #: `marrow_inside_skull`: on for MRI. An adult's calvarial marrow is fatty, as bright as the scalp's fat on T1
 #: (Simonson & Kao 1992, Pediatr. Radiol. 22:556), so intensity cannot tell it from scalp and a held-out atlas
 #: decides. Where that atlas's skull is thinner than the head's, or the registration is pulled inward by the
@@ -493,6 +501,10 @@ class SegmentConfig:
             (`depth_prior.fit_layer_split`: CSF inside the skull; LAYER_SPLIT_MM), share each voxel's
             CSF + skull prior by a step at it (`depth_prior.with_local_split`) and run the EM again.
             None: the modality default (DEFAULT_LAYER_SPLIT: on for MRI); True with a CT is an error.
+        scalp_split: MRI, with `layer_split`: also learn the skull/scalp change point in depth between the
+            segmented brain + CSF and the air outside the head the same way (skull inside the scalp), and share
+            each voxel's skull + scalp prior by a step at it in the same EM (`_layer_split`). None: the modality
+            default (DEFAULT_SCALP_SPLIT: on for MRI); True with a CT, or without the layer split, is an error.
         marrow_inside_skull: MRI: after the EM (and the depth prior), before the layer split, scalp-labelled
             voxels that the segmented skull encloses (`marrow_enclosed`; scalp as dark as the tables, deeper than
             SKIN_LAYER_MM, walls the marrow like the skull) get the skull's prior and the EM runs
@@ -548,6 +560,7 @@ class SegmentConfig:
     noise_floor: bool | None = None
     depth_prior: bool | None = None
     layer_split: bool | None = None
+    scalp_split: bool | None = None
     marrow_inside_skull: bool | None = None
     csf_inside_tables: bool | None = None
     unmodelled_start: Literal["equal", "atlas"] | None = None
@@ -640,6 +653,11 @@ class SegmentConfig:
         _check_modality_switch("layer_split", self.layer_split, self.modality, "mri",
                                "(T1: CSF and bone both dark); on CT the bone is bright, so the intensities "
                                "split CSF from skull without it.")
+        _check_modality_switch("scalp_split", self.scalp_split, self.modality, "mri",
+                               "(T1: an adult's marrow as bright as the scalp's fat); on CT the bone is bright.")
+        if self.scalp_split and not self.layer_split_on():
+            raise ValueError("[segment] `scalp_split` = true needs the layer split (it runs in the layer split's EM); "
+                             "set layer_split = true, or leave scalp_split unset.")
         _check_modality_switch("marrow_inside_skull", self.marrow_inside_skull, self.modality, "mri",
                                "(T1: fatty marrow as bright as the scalp's fat); on CT the bone is bright and "
                                "`scalp_outside_skull` relabels scalp inside the skull.")
@@ -676,6 +694,12 @@ class SegmentConfig:
     def layer_split_on(self) -> bool:
         """Whether the CSF/skull split is learnt from the scan (`layer_split`, or the modality default)."""
         return DEFAULT_LAYER_SPLIT[self.modality] if self.layer_split is None else bool(self.layer_split)
+
+    def scalp_split_on(self) -> bool:
+        """Whether the skull/scalp split is learnt with the layer split (`scalp_split`, or the modality default)."""
+        if not self.layer_split_on():
+            return False
+        return DEFAULT_SCALP_SPLIT[self.modality] if self.scalp_split is None else bool(self.scalp_split)
 
     def csf_inside_tables_on(self) -> bool:
         """Whether bright skull inside the tables goes to CSF (`csf_inside_tables`, or the modality default)."""
@@ -766,7 +790,8 @@ class Segmentation(eqx.Module):
             scales, rotation (deg), determinant, NMI after the affine stage; and what the later steps
             did, each under its own key where it ran: "unmodelled" (the start and the learnt skull and scalp
             shares where the atlas models no bone), "warp_refinement", "depth_prior" (MRI),
-            "marrow_inside_skull" (MRI: rounds, voxels given to the skull per round), "layer_split" (MRI),
+            "marrow_inside_skull" (MRI: rounds, voxels given to the skull per round), "layer_split" (MRI; its
+            "scalp_split" inside it),
             "bone_majority", "air_majority" and "scalp_outside_skull" (CT: thresholds and voxels
             relabelled).
     """
@@ -1744,7 +1769,7 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     """The EM again on priors whose CSF/skull split is a step at the change point in depth learnt from
     the scan (`depth_prior.fit_layer_split` on the bias-corrected EM data, in the CSF + skull band of
     `fit`; `with_local_split`), after the learnt proportions `pi` (None: none) where the atlas models no
-    bone. `fit` is (posteriors, EMResult, EMOptions, coords[, pi, sample]) (with the sample its EM data is reused). `given_back`: the voxels whose skull prior
+    bone; with `cfg.scalp_split_on()` its skull/scalp split too (`_scalp_split`, the same EM). `fit` is (posteriors, EMResult, EMOptions, coords[, pi, sample]) (with the sample its EM data is reused). `given_back`: the voxels whose skull prior
     `_marrow_inside_skull` gave to the scalp without running the EM (its `defer_mirror`), None: none; they count
     as scalp here, and the EM starts from its own start (the mirror's reason), not from `fit`'s parameters.
     Returns (`_classify_all`'s output, summary for the run report), and with `return_priors` the priors its EM
@@ -1773,6 +1798,8 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     # started from the first EM's fit (only the CSF/skull priors changed): fewer iterations than from quantiles;
     # after a deferred mirror from the EM's own start, as the mirror's EM would have
     split_priors = with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH)
+    if cfg.scalp_split_on():
+        split_priors, summary["scalp_split"] = _scalp_split(labels, y, vox, split_priors)
     new = _classify(volume, split_priors, cfg, init=res.params if given_back is None else None, data=_fit_data(fit))
     new = new[:4] + (pi,) + new[5:]
     summary.update(window_mm=LAYER_SPLIT_MM, width=LAYER_SPLIT_WIDTH,
@@ -1780,6 +1807,22 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
                    seconds=round(time.perf_counter() - t0, 1))
     log.info("segment (%s): CSF/skull split learnt from the scan's band: %s", cfg.modality, summary)
     return (new, summary, split_priors) if return_priors else (new, summary)
+
+
+def _scalp_split(labels: np.ndarray, y: np.ndarray, vox, priors: np.ndarray) -> tuple[np.ndarray, dict]:
+    """`SegmentConfig.scalp_split`: the skull/scalp change point in depth t between the brain + CSF of `labels` (0)
+    and the background that leads out of the grid (1; `enclosed_background`'s complement), learnt from `y` in the
+    skull + scalp band as `fit_layer_split` learns the CSF/skull one, and `priors`' skull + scalp mass shared by a
+    step at it (LAYER_SPLIT_WIDTH). Returns (the priors, float32; summary for the run report)."""
+    air = (labels == Tissue.BACKGROUND) & ~enclosed_background(labels)
+    inner = (labels == Tissue.BRAIN) | (labels == Tissue.CSF)
+    band = (labels == Tissue.SKULL) | (labels == Tissue.SCALP)
+    if not (air.any() and inner.any() and band.any()):
+        return priors, dict(skipped="no air around the head, or no brain + CSF, or no skull + scalp labelled")
+    t = layer_depth(inner, air, vox)
+    tau, summary = fit_layer_split(y, t, band, vox, LAYER_SPLIT_MM)
+    summary["skull_fraction"] = summary.pop("csf_fraction")  # the inner side's share of the band: skull here
+    return with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH, (Tissue.SKULL, Tissue.SCALP)), summary
 
 
 def config_atlas(cfg: SegmentConfig) -> Atlas:
