@@ -289,7 +289,10 @@ DEFAULT_LAYER_SPLIT = {"mri": True, "ct": False}
 #: scanner's point-spread function blurs those 1-2 mm tables until the ray rules of `marrow_inside_skull`
 #: (which need them closed) misfire. Session 32 (experiments/results/segmentation_scalp_split.md): the ANTs
 #: head with an adult's marrow, 1 mm, neck cut, 3 %, blurred by a PSF of 1.2 mm FWHM (`templates.render`'s
-#: `psf_fwhm_mm`): skull / scalp 0.545 / 0.864 -> 0.731 / 0.952; the tables there in that file.
+#: `psf_fwhm_mm`): skull / scalp 0.545 / 0.864 -> 0.731 / 0.952; the tables there in that file. Only the tables
+#: vote for the change point where marrow and fat look alike, so it is skipped, like the marrow step, on voxels
+#: coarser than a table (MARROW_MAX_VOXEL_MM); at 2 mm it cost the no-marrow table a met row (MNI152 8 %: CSF
+#: 0.775 -> 0.749).
 DEFAULT_SCALP_SPLIT = {"mri": True, "ct": False}
 #: `marrow_inside_skull`: on for MRI. An adult's calvarial marrow is fatty, as bright as the scalp's fat on T1
 #: (Simonson & Kao 1992, Pediatr. Radiol. 22:556), so intensity cannot tell it from scalp and a held-out atlas
@@ -503,8 +506,9 @@ class SegmentConfig:
             None: the modality default (DEFAULT_LAYER_SPLIT: on for MRI); True with a CT is an error.
         scalp_split: MRI, with `layer_split`: also learn the skull/scalp change point in depth between the
             segmented brain + CSF and the air outside the head the same way (skull inside the scalp), and share
-            each voxel's skull + scalp prior by a step at it in the same EM (`_layer_split`). None: the modality
-            default (DEFAULT_SCALP_SPLIT: on for MRI); True with a CT, or without the layer split, is an error.
+            each voxel's skull + scalp prior by a step at it in the same EM (`_layer_split`); skipped, and said so
+            in the report, on voxels coarser than MARROW_MAX_VOXEL_MM. None: the modality default
+            (DEFAULT_SCALP_SPLIT: on for MRI); True with a CT, or without the layer split, is an error.
         marrow_inside_skull: MRI: after the EM (and the depth prior), before the layer split, scalp-labelled
             voxels that the segmented skull encloses (`marrow_enclosed`; scalp as dark as the tables, deeper than
             SKIN_LAYER_MM, walls the marrow like the skull) get the skull's prior and the EM runs
@@ -1798,7 +1802,10 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     # started from the first EM's fit (only the CSF/skull priors changed): fewer iterations than from quantiles;
     # after a deferred mirror from the EM's own start, as the mirror's EM would have
     split_priors = with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH)
-    if cfg.scalp_split_on():
+    if cfg.scalp_split_on() and float(np.max(vox)) > MARROW_MAX_VOXEL_MM:
+        summary["scalp_split"] = dict(skipped=f"voxels of {float(np.max(vox)):.3g} mm, coarser than a compact table "
+                                      f"({MARROW_MAX_VOXEL_MM} mm, MARROW_MAX_VOXEL_MM): no table to find")
+    elif cfg.scalp_split_on():
         split_priors, summary["scalp_split"] = _scalp_split(labels, y, vox, split_priors)
     new = _classify(volume, split_priors, cfg, init=res.params if given_back is None else None, data=_fit_data(fit))
     new = new[:4] + (pi,) + new[5:]
