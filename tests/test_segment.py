@@ -84,6 +84,8 @@ def test_segment_mri_phantom_not_in_atlas(atlas_mri):
     # the layer split reports the band's CSF share it learnt beside the one the registered atlas expects
     split = seg.registration["layer_split"]
     assert 0 < split["csf_fraction"] < 1 and 0 < split["atlas_csf_fraction"] < 1, split
+    # the skull/scalp split runs only where the voxels resolve a compact table (MARROW_MAX_VOXEL_MM), and says so
+    assert "MARROW_MAX_VOXEL_MM" in split["scalp_split"]["skipped"], split
     d = {t: dice(seg.labels.labels == t, truth.labels == t) for t in TISSUES}
     # At 6 mm voxels the 1-5 mm CSF and 4-9 mm skull are mostly partial volume, so only the thick
     # tissues are held to tight bounds here (2 mm figures: experiments/segmentation_accuracy.py).
