@@ -6,7 +6,7 @@ the 1 mm grid) is compared with the same algorithm in vectorised NumPy (float32,
 counts, of both EM runs where the atlas models no bone since session 30; timed for two iterations and extrapolated), and the ratio printed. Target: EM + MRF <= 20 s
 after compile. For MRI, `segment` then runs the marrow step (`SegmentConfig.marrow_inside_skull`: scalp the
 skull encloses given to the skull, and the EM again where there is any) and the layer split (`SegmentConfig.layer_split`, on for MRI:
-the CSF/skull change point in depth learnt from the scan, since session 32 with the skull/scalp one (`SegmentConfig.scalp_split`, voxels <= 1.5 mm), and the EM again); it is timed too, and so is
+the CSF/skull change point in depth learnt from the scan, with `SegmentConfig.scalp_split` (an option since session 32, off by default) the skull/scalp one too, and the EM again); it is timed too, and so is
 the depth prior before it with --depth-prior (`SegmentConfig.depth_prior`, off by default since session
 16: CSF/skull priors by the atlas's profile in depth, and the EM again), and, unless --no-csf-inside-tables,
 `SegmentConfig.csf_inside_tables` (on for MRI since session 27: bright skull inside the tables given to CSF,

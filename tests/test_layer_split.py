@@ -203,9 +203,9 @@ def test_scalp_split_finds_the_outer_table_where_marrow_and_fat_look_alike():
 
 
 def test_scalp_split_is_an_mri_option_inside_the_layer_split():
-    assert SegmentConfig(modality="mri").scalp_split_on() and not SegmentConfig(modality="ct").scalp_split_on()
+    assert SegmentConfig(modality="mri", scalp_split=True).scalp_split_on()
+    assert not SegmentConfig(modality="mri").scalp_split_on() and not SegmentConfig(modality="ct").scalp_split_on()
     assert not SegmentConfig(modality="mri", layer_split=False).scalp_split_on()
-    assert not SegmentConfig(modality="mri", scalp_split=False).scalp_split_on()
     with pytest.raises(ValueError, match="scalp_split"):
         SegmentConfig(modality="ct", scalp_split=True)
     with pytest.raises(ValueError, match="`scalp_split` = true needs the layer split"):

@@ -74,7 +74,7 @@ def test_atlas_is_a_probability_map(atlas_mri):
 
 def test_segment_mri_phantom_not_in_atlas(atlas_mri):
     vol, truth = make_head("mri", voxel_mm=VOX, seed=3)  # atlas seeds are 1000..1002
-    cfg = SegmentConfig(modality="mri", register=FAST_REG, precision="float64")
+    cfg = SegmentConfig(modality="mri", register=FAST_REG, precision="float64", scalp_split=True)
     labels, seg = segment_reported(vol, atlas_mri, cfg)
     assert seg.labels is labels
     assert seg.labels.shape == vol.shape and np.allclose(seg.labels.affine, vol.affine)
