@@ -295,7 +295,8 @@ DEFAULT_LAYER_SPLIT = {"mri": True, "ct": False}
 #: 0.775 -> 0.749). Off by default: on a synthetic head without marrow whose atlas's skull reaches 2 mm into
 #: the scalp's fat (tests/test_segment_marrow.py::test_scalp_fat_of_a_skull_without_marrow_goes_back_and_the_brain_stays)
 #: the split put the change point in the fat (skull share of the band 0.52 against 0.33) and the fat went to
-#: the skull (99.9 %, skull Dice 0.999 -> 0.721), where the mirror alone gives it back; not traced this session.
+#: the skull (99.9 %, skull Dice 0.999 -> 0.721), where the mirror alone gives it back: the change-point
+#: iteration starts from t < 1/2, which there lies in the fat, and stays (experiments/results/segmentation_scalp_split.md).
 DEFAULT_SCALP_SPLIT = {"mri": False, "ct": False}
 #: `marrow_inside_skull`: on for MRI. An adult's calvarial marrow is fatty, as bright as the scalp's fat on T1
 #: (Simonson & Kao 1992, Pediatr. Radiol. 22:556), so intensity cannot tell it from scalp and a held-out atlas
