@@ -15,6 +15,7 @@ from jaxhead.segmentation.depth_prior import (
     _log_ratio,
     density_log_ratio,
     fit_layer_split,
+    largest_component,
     layer_depth,
     local_change_point,
     upsample,
@@ -167,14 +168,20 @@ def test_a_first_segmentation_without_brain_is_a_clear_error():
                      SegmentConfig())
 
 
-def test_scalp_split_finds_the_outer_table_where_marrow_and_fat_look_alike():
-    """`scalp_split` on nested shells: a skull of two dark tables around a marrow as bright as the scalp's fat,
-    its outer surface moving with direction (4.5-9.5 mm thick), under a first segmentation that took a fixed
-    4 mm skull. The skull/scalp change point learnt in depth between brain + CSF and the air puts the skull's
-    share above one half on the true skull, which no intensity rule can (marrow and fat are one Gaussian), and
-    the skull + scalp mass is only shared between them."""
-    from jaxhead.segmentation.segment import _scalp_split
+def test_largest_component_keeps_the_biggest_face_connected_piece():
+    m = np.zeros((9, 9, 9), bool)
+    m[1:4, 1:4, 1:4] = True  # 27 voxels
+    m[5:8, 5:8, 5:7] = True  # 18
+    m[4, 4, 4] = True  # touches the first piece at a corner only: not face-connected
+    out = largest_component(m)
+    assert out.sum() == 27 and out[1:4, 1:4, 1:4].all() and not out[4, 4, 4] and not (out & ~m).any()
+    assert not largest_component(np.zeros((3, 3, 3), bool)).any()
+    np.testing.assert_array_equal(largest_component(m[:4, :4, :4]), m[:4, :4, :4])  # one piece: itself
 
+
+def _shells_with_marrow(stray_brain: bool):
+    """`test_scalp_split_finds_the_outer_table_where_marrow_and_fat_look_alike`'s head, with `stray_brain`: a few
+    scalp voxels labelled brain, as fat as bright as white matter is on T1."""
     vox = 1.0
     r, c = _radius_angle(72, vox)
     r_out = 22.0 + 2.5 * c  # the skull's outer surface: 19.5-24.5 mm
@@ -186,6 +193,25 @@ def test_scalp_split_finds_the_outer_table_where_marrow_and_fat_look_alike():
     y[air] = rng.normal(0.0, 0.1, r.shape)[air]
     labels = np.where(r < 13.0, Tissue.BRAIN, np.where(inner, Tissue.CSF, np.where(r < 19.0, Tissue.SKULL,
                       np.where(air, Tissue.BACKGROUND, Tissue.SCALP))))
+    if stray_brain:  # one voxel in ~150 of the scalp outside the true skull
+        scalp = np.nonzero((labels == Tissue.SCALP) & ~skull)
+        pick = rng.choice(len(scalp[0]), len(scalp[0]) // 150, replace=False)
+        labels[tuple(a[pick] for a in scalp)] = Tissue.BRAIN
+    return vox, r, inner, air, skull, y, labels
+
+
+@pytest.mark.parametrize("stray_brain", [False, True])
+def test_scalp_split_finds_the_outer_table_where_marrow_and_fat_look_alike(stray_brain):
+    """`scalp_split` on nested shells: a skull of two dark tables around a marrow as bright as the scalp's fat,
+    its outer surface moving with direction (4.5-9.5 mm thick), under a first segmentation that took a fixed
+    4 mm skull. The skull/scalp change point learnt in depth between brain + CSF and the air puts the skull's
+    share above one half on the true skull, which no intensity rule can (marrow and fat are one Gaussian), and
+    the skull + scalp mass is only shared between them. With stray brain labels in the scalp the depth still
+    starts at the intracranial compartment (`largest_component`): measured from every brain label, depth 0 sat in
+    the scalp beside each stray and drew the change point into the fat (session 33)."""
+    from jaxhead.segmentation.segment import _scalp_split
+
+    vox, r, inner, air, skull, y, labels = _shells_with_marrow(stray_brain)
     priors = np.stack([np.where(labels == k, 0.9, 0.025) for k in range(5)]).astype(np.float32)
     out, summary = _scalp_split(labels, y, (vox,) * 3, priors)
     band = ~inner & ~air

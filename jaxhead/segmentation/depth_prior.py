@@ -57,6 +57,17 @@ def layer_depth(brain: np.ndarray, scalp: np.ndarray, voxel_mm) -> np.ndarray:
     return np.divide(d_brain, total, out=np.zeros_like(total), where=total > 0)
 
 
+def largest_component(mask: np.ndarray) -> np.ndarray:
+    """The largest face-connected (6-neighbourhood) component of a boolean mask (all False where it is empty).
+    The depth's ends are compartments, not every voxel of a label: a few voxels of scalp fat labelled brain
+    (as bright as white matter on T1) put depth 0 in the scalp beside them."""
+    mask = np.asarray(mask, bool)
+    lab, n = ndimage.label(mask)
+    if n <= 1:
+        return mask
+    return lab == int(np.argmax(np.bincount(lab.ravel())[1:])) + 1
+
+
 def isotonic_decreasing(values, weights) -> np.ndarray:
     """The weighted least-squares non-increasing sequence closest to `values` (pool adjacent violators)."""
     values, weights = np.asarray(values, np.float64), np.asarray(weights, np.float64)

@@ -78,7 +78,8 @@ from scipy import ndimage
 from ..tissue import Tissue
 from ..volume import LabelMap, Volume, voxel_sizes
 from .atlas import N_CLASSES, Atlas, check_atlas_kind, default_atlas, regional_proportions, with_proportions
-from .depth_prior import csf_depth_profile, fit_layer_split, layer_depth, with_depth_profile, with_local_split
+from .depth_prior import (csf_depth_profile, fit_layer_split, largest_component, layer_depth, with_depth_profile,
+                          with_local_split)
 from .denoise import diffuse, log_noise_table, noise_sd, rayleigh_noise_sd
 from .em import EMOptions, MixtureParams, NoiseFloor, bias_field, fit_mixture, infer_posteriors
 from .register import (
@@ -1469,6 +1470,15 @@ def _brain_and_scalp(labels: np.ndarray, step: str) -> None:
             f"set {step} = false.")
 
 
+def _coarser_than_a_table(volume: Volume, why: str) -> str | None:
+    """The run report's reason a step that follows the skull's compact tables is skipped (`why` says what it cannot
+    do), where the scan's coarsest voxel side is above MARROW_MAX_VOXEL_MM; None where it runs."""
+    vox = float(np.max(voxel_sizes(volume.affine)))
+    if vox <= MARROW_MAX_VOXEL_MM:
+        return None
+    return f"voxels of {vox:.3g} mm, coarser than a compact table ({MARROW_MAX_VOXEL_MM} mm, MARROW_MAX_VOXEL_MM): {why}"
+
+
 def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: SegmentConfig,
                          defer_mirror: bool = False):
     """Scalp-labelled voxels that the segmented skull encloses (`marrow_enclosed`) get their
@@ -1488,10 +1498,9 @@ def _marrow_inside_skull(volume: Volume, priors: np.ndarray, unmodelled, pi, fit
     report; the voxels given back whose EM was deferred, or None)."""
     t0 = time.perf_counter()
     vox = float(np.max(voxel_sizes(volume.affine)))
-    if vox > MARROW_MAX_VOXEL_MM:
-        summary = dict(rounds=0, voxels=0, skipped=f"voxels of {vox:.3g} mm, coarser than a compact table "
-                       f"({MARROW_MAX_VOXEL_MM} mm, MARROW_MAX_VOXEL_MM): the tables cannot enclose the marrow")
-        log.info("segment (%s): marrow_inside_skull skipped: %s", cfg.modality, summary["skipped"])
+    if skipped := _coarser_than_a_table(volume, "the tables cannot enclose the marrow"):
+        summary = dict(rounds=0, voxels=0, skipped=skipped)
+        log.info("segment (%s): marrow_inside_skull skipped: %s", cfg.modality, skipped)
         return priors, fit, summary, None
     priors = np.array(priors, np.float32, copy=True)
     moved, total, below = [], np.zeros(priors.shape[1:], bool), 0
@@ -1632,10 +1641,8 @@ def _csf_inside_tables(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, 
     `fit`'s parameters, if they are at least MARROW_MIN_SHARE of the skull-labelled voxels. `unmodelled`, `pi`:
     the learnt proportions to apply to `priors` (None: applied already, or none). Returns (`_classify_all`'s
     output, or `fit` unchanged; summary for the run report)."""
-    vox = float(np.max(voxel_sizes(volume.affine)))
-    if vox > MARROW_MAX_VOXEL_MM:
-        return fit, dict(voxels=0, skipped=f"voxels of {vox:.3g} mm, coarser than a compact table "
-                         f"({MARROW_MAX_VOXEL_MM} mm, MARROW_MAX_VOXEL_MM)")
+    if skipped := _coarser_than_a_table(volume, "no table to find CSF inside"):
+        return fit, dict(voxels=0, skipped=skipped)
     means = {f"{c.name.lower()}_means": np.round(_live_means(fit, c), 4).tolist()
              for c in (Tissue.BRAIN, Tissue.CSF, Tissue.SKULL)}
     if skull_cut(fit) is None:
@@ -1806,9 +1813,8 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     # started from the first EM's fit (only the CSF/skull priors changed): fewer iterations than from quantiles;
     # after a deferred mirror from the EM's own start, as the mirror's EM would have
     split_priors = with_local_split(priors, t, tau, LAYER_SPLIT_WIDTH)
-    if cfg.scalp_split_on() and float(np.max(vox)) > MARROW_MAX_VOXEL_MM:
-        summary["scalp_split"] = dict(skipped=f"voxels of {float(np.max(vox)):.3g} mm, coarser than a compact table "
-                                      f"({MARROW_MAX_VOXEL_MM} mm, MARROW_MAX_VOXEL_MM): no table to find")
+    if cfg.scalp_split_on() and (skipped := _coarser_than_a_table(volume, "no table to find")):
+        summary["scalp_split"] = dict(skipped=skipped)
     elif cfg.scalp_split_on():
         split_priors, summary["scalp_split"] = _scalp_split(labels, y, vox, split_priors)
     new = _classify(volume, split_priors, cfg, init=res.params if given_back is None else None, data=_fit_data(fit))
@@ -1823,10 +1829,12 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
 def _scalp_split(labels: np.ndarray, y: np.ndarray, vox, priors: np.ndarray) -> tuple[np.ndarray, dict]:
     """`SegmentConfig.scalp_split`: the skull/scalp change point in depth t between the brain + CSF of `labels` (0)
     and the background that leads out of the grid (1; `enclosed_background`'s complement), learnt from `y` in the
-    skull + scalp band as `fit_layer_split` learns the CSF/skull one, and `priors`' skull + scalp mass shared by a
+    skull + scalp band as `fit_layer_split` learns the CSF/skull one (brain + CSF: its largest component), and `priors`' skull + scalp mass shared by a
     step at it (LAYER_SPLIT_WIDTH). Returns (the priors, float32; summary for the run report)."""
     air = (labels == Tissue.BACKGROUND) & ~enclosed_background(labels)
-    inner = (labels == Tissue.BRAIN) | (labels == Tissue.CSF)
+    # the intracranial compartment, not every brain or CSF voxel: stray brain labels in the scalp's fat (T1-bright
+    # like white matter) put depth 0 in the scalp and drew the change point into the fat (session 33)
+    inner = largest_component((labels == Tissue.BRAIN) | (labels == Tissue.CSF))
     band = (labels == Tissue.SKULL) | (labels == Tissue.SCALP)
     if not (air.any() and inner.any() and band.any()):
         return priors, dict(skipped="no air around the head, or no brain + CSF, or no skull + scalp labelled")
