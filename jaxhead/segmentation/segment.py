@@ -293,11 +293,17 @@ DEFAULT_LAYER_SPLIT = {"mri": True, "ct": False}
 #: `psf_fwhm_mm`): skull / scalp 0.545 / 0.864 -> 0.731 / 0.952; the tables there in that file. Only the tables
 #: vote for the change point where marrow and fat look alike, so it is skipped, like the marrow step, on voxels
 #: coarser than a table (MARROW_MAX_VOXEL_MM); at 2 mm it cost the no-marrow table a met row (MNI152 8 %: CSF
-#: 0.775 -> 0.749). Off by default: on a synthetic head without marrow whose atlas's skull reaches 2 mm into
-#: the scalp's fat (tests/test_segment_marrow.py::test_scalp_fat_of_a_skull_without_marrow_goes_back_and_the_brain_stays)
-#: the split put the change point in the fat (skull share of the band 0.52 against 0.33) and the fat went to
-#: the skull (99.9 %, skull Dice 0.999 -> 0.721), where the mirror alone gives it back: the change-point
-#: iteration starts from t < 1/2, which there lies in the fat, and stays (experiments/results/segmentation_scalp_split.md).
+#: 0.775 -> 0.749). Off by default: it is not general. Session 32's failing case (a synthetic head without
+#: marrow whose atlas's skull reaches 2 mm into the scalp's fat, tests/test_segment_marrow.py) was stray brain
+#: labels in the fat, which put depth 0 in the scalp (fixed in session 33: the depth starts at the intracranial
+#: compartment, `largest_component`). What remains is the estimator's: where an adult's marrow is as bright as
+#: the scalp's fat, the fat beyond the outer table votes for whichever side's intensity histogram holds more of
+#: it, and that is the skull wherever the scalp is mostly muscle and skin. On nested shells with a 4 mm marrow,
+#: 4 mm of fat, 3 of muscle and 2 of skin, started from the true split, it put the change point at the fat's outer
+#: edge (skull share of the band 0.58 against 0.33), and in `segment` (layer and scalp split on, labels right
+#: before it) skull Dice went 0.995 -> 0.720 (experiments/results/segmentation_scalp_split.md, section 6); on
+#: shells whose scalp is all fat it finds the table (tests/test_layer_split.py). So the answer depends on the
+#: scalp's make-up, which a new head does not tell us.
 DEFAULT_SCALP_SPLIT = {"mri": False, "ct": False}
 #: `marrow_inside_skull`: on for MRI. An adult's calvarial marrow is fatty, as bright as the scalp's fat on T1
 #: (Simonson & Kao 1992, Pediatr. Radiol. 22:556), so intensity cannot tell it from scalp and a held-out atlas
