@@ -1803,7 +1803,11 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     _brain_and_scalp(labels, "layer_split")
     y = corrected_em_data(volume, fit, cfg)
     vox = voxel_sizes(volume.affine)
-    t = layer_depth(labels == Tissue.BRAIN, labels == Tissue.SCALP, vox)
+    # the depth's ends are compartments: the brain of the intracranial space (brain + CSF's largest component) and
+    # the scalp's largest component, not stray labels (fat labelled brain in the scalp, scalp in the brain), which
+    # put depth 0 or 1 beside them (session 33: 13,816 and 6,234 voxels on the benchmark's scan; the child's-marrow 1 mm table's rows 2 -> 3 of 4)
+    brain = (labels == Tissue.BRAIN) & largest_component((labels == Tissue.BRAIN) | (labels == Tissue.CSF))
+    t = layer_depth(brain, largest_component(labels == Tissue.SCALP), vox)
     band = (labels == Tissue.CSF) | (labels == Tissue.SKULL)
     if not band.any():
         raise ValueError("[segment] layer_split: the first EM labelled no CSF and no skull voxel, so there is no "
