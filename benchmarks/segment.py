@@ -10,8 +10,9 @@ the CSF/skull change point in depth learnt from the scan, with `SegmentConfig.sc
 the depth prior before it with --depth-prior (`SegmentConfig.depth_prior`, off by default since session
 16: CSF/skull priors by the atlas's profile in depth, and the EM again), and, unless --no-csf-inside-tables,
 `SegmentConfig.csf_inside_tables` (on for MRI since session 27: bright skull inside the tables given to CSF,
-and the EM again where there is any, after the marrow step and after the layer split). The target applies to all EM
-stages together.
+and the EM again where there is any, after the marrow step and after the layer split), and
+`SegmentConfig.marrow_tables` (on for MRI since session 33: the tables around a fat-bright marrow relabelled skull,
+no EM; timed and counted in the total). The target applies to all EM stages together.
 
 With --refine-warp N the warp refinement on the EM's likelihood (`SegmentConfig.refine_warp`: N
 refinements, each followed by a new EM) is timed after the EM, first call and after compile.
@@ -48,6 +49,7 @@ from jaxhead.segmentation.templates import (  # noqa: E402
 from jaxhead.segmentation import SegmentConfig, classify, default_atlas, register_atlas  # noqa: E402
 from jaxhead.segmentation.segment import (  # noqa: E402
     _classify_all, _csf_inside_tables, _depth_prior, _em_data, _first_pass, _layer_split, _marrow_inside_skull,
+    _marrow_tables,
     _refine_warp,
     sample_stride, unmodelled_on_grid,
 )
@@ -198,12 +200,18 @@ def main():
         if cfg.csf_inside_tables_on():
             later.append(("csf inside tables after the split", "again, on the split's priors", _csf_inside_tables,
                           lambda f: (vol, np.array(kept["split"], np.float32, copy=True), None, None, f, cfg)))
+    if cfg.marrow_tables_on():  # on for MRI since session 33: a relabelling, no EM (timed, counted in the total)
+        def tables(f):
+            post, summary = _marrow_tables(vol, f, cfg)
+            return (post,) + tuple(f[1:]), summary
+        later.append(("marrow tables", "the tables around a fat-bright marrow relabelled skull, no EM", tables,
+                      lambda f: (f,)))
     for name, what, step, arguments in later:
         t = {}
         for key in ("1", "2"):
             (fit, summary), t[key] = _timed(step, *arguments(fit_prev), key=name + key)
         total += t["2"]
-        print(f"{name} ({what}, then EM + MRF): first call {t['1']:.1f} s, after compile {t['2']:.1f} s (CPU "
+        print(f"{name} ({what}{'' if what.endswith('no EM') else ', then EM + MRF'}): first call {t['1']:.1f} s, after compile {t['2']:.1f} s (CPU "
               f"{CPU[name + '2']:.1f} s), {summary}; EM + MRF in all, as segment runs it: {total:.1f} s "
               f"(target <= 20 s: {'met' if total <= 20 else 'NOT met'}); {_load()}")
         print(f"Dice brain, csf, skull, scalp after the {name}:", np.round(_dice4(fit[0].argmax(0), truth), 3).tolist())

@@ -14,6 +14,8 @@ Pipeline (one method for both modalities, as the seed's CT branch: Vonach et al.
    scan's own intensities in the dark band between them (CSF inside the skull), the CSF/skull priors
    shared by a step at it, and 3-4 again (`depth_prior.fit_layer_split`, `SegmentConfig.layer_split`;
    optionally first the atlas's profile in depth, `SegmentConfig.depth_prior`),
+4c. MRI: the compact tables around a fat-bright marrow that the EM gave to CSF or the scalp (a scanner's blur
+   darkens them to CSF's and muscle's level) relabelled skull (`marrow_tables`, `SegmentConfig.marrow_tables`),
 5. CT: the bone surface and the skin relabelled by the partial-volume majority rule (`bone_majority`,
    `air_majority`), and scalp the skull encloses beside the brain or CSF relabelled (`scalp_outside_skull`),
 6. hard labels = argmax of the five class posteriors (BACKGROUND, BRAIN, CSF, SKULL, SCALP).
@@ -42,6 +44,8 @@ What the intensity model assumes (and what it learns from the scan):
   (`marrow_inside_skull`; voxels of at most MARROW_MAX_VOXEL_MM, where the tables can close around it).
   Compact bone is dark in every MR contrast, so scalp-labelled voxels as dark as the skull's tables, deeper
   than the skin's partial volume with air (SKIN_LAYER_MM), enclose it too (an outer table the scalp took).
+- MRI: an adult's diploe lies between two compact tables 1-2 mm thick (MARROW_TABLE_MM), so dark voxels the EM
+  gave to CSF or the scalp within that reach of exposed fat-bright marrow are those tables (`marrow_tables`).
 - MRI: between the brain and the scalp, CSF lies inside the skull, and within a neighbourhood of
   LAYER_SPLIT_MM the CSF's share of the band's depth changes little (`layer_split`).
 - `denoise`: the noise is uncorrelated between voxels and roughly stationary (CT: additive, its sd
@@ -343,6 +347,22 @@ MARROW_ROUNDS = 3
 #: adult marrow over four contrasts: every real-head scan unchanged (ungated, one lost its skull: 0.882 ->
 #: 0.384); no marrow: see the write-up. The phantom family's scans move by at most 0.019.
 DEFAULT_CSF_INSIDE_TABLES = {"mri": True, "ct": False}
+#: `marrow_tables`: MRI. The diploe of a flat skull bone lies between two compact tables (an anatomical given,
+#: not a property of one head). A scanner's point-spread function blurs a 1-2 mm table between a fat-bright
+#: marrow and CSF or scalp fat into something as dark as CSF and muscle; the EM then gives the inner table to
+#: CSF and the outer to the scalp, and the skull class keeps only the marrow (session 33: the MNI152 head, an
+#: adult's marrow, 1 mm, 3 %, PSF 1.2 mm FWHM: at depth 0.1-0.2 of the skull 100 % CSF, at 0.8-0.9 94 % scalp,
+#: skull Dice 0.761; experiments/results/segmentation_marrow_tables.md). After the EM, voxels labelled CSF or
+#: scalp, no brighter than the tables (`tables_cut`), within MARROW_TABLE_MM of the skull's fat-bright voxels
+#: are relabelled skull, where the skull class has learnt a fat-bright marrow (`tables_cut` is not None).
+DEFAULT_MARROW_TABLES = {"mri": True, "ct": False}
+#: `marrow_tables`' reach from the exposed marrow (mm): a compact table's thickness. The phantom draws outer
+#: tables of 1.2-2.4 mm and inner ones of 0.8-1.6 mm (jaxhead.phantom), the held-out renders 1.5 mm
+#: (templates.DIPLOE_TABLE_MM). Session 33, the MNI152 head rendered with 1.0, 1.5 and 2.0 mm tables (adult's
+#: marrow, 3 %, 1 mm; experiments/results/segmentation_marrow_tables.md): under a 1.2 mm FWHM PSF skull
+#: 0.761 -> 0.959 (1.5 mm tables) and 0.957 -> 0.979 (2.0 mm); sharp, at most -0.002 (1.0 mm tables: a reach
+#: from all of the marrow, not only the exposed, took 1 mm of CSF beyond them there, CSF 0.897 -> 0.858).
+MARROW_TABLE_MM = 1.5
 #: `marrow_inside_skull` runs only on scans whose coarsest voxel side is at most this (mm): a compact table is
 #: 1-2 mm thick (templates.DIPLOE_TABLE_MM: 1.5), and the skull encloses the marrow only where the tables are
 #: labelled skull. Measured (experiments/results/segmentation_marrow_inside_skull.md): at 1 mm it gives the
@@ -532,6 +552,11 @@ class SegmentConfig:
             CSF's prior and the EM runs again, where every skull Gaussian is darker than the brain's darkest
             (`csf_inside_cut`); skipped on voxels coarser than MARROW_MAX_VOXEL_MM. None: the modality
             default (DEFAULT_CSF_INSIDE_TABLES: on for MRI); True with a CT is an error.
+        marrow_tables: MRI: after the EM (the last step before the labels), voxels labelled CSF or scalp, no
+            brighter than the skull's tables, within MARROW_TABLE_MM of the skull's fat-bright marrow are
+            relabelled skull (`marrow_tables`: the compact tables a scanner's blur gave to the neighbours), where
+            the skull class has learnt a fat-bright marrow; counted in the report, skipped on voxels coarser than
+            MARROW_MAX_VOXEL_MM. None: the modality default (DEFAULT_MARROW_TABLES); True with a CT is an error.
         unmodelled_start: where the atlas models no bone (`Atlas.unmodelled`: the mni152 atlas's face
             and neck), the skull and scalp shares the first EM starts from, before their proportions
             are learnt from the scan (`classify`): "equal" (half each) or "atlas" (the atlas's
@@ -578,6 +603,7 @@ class SegmentConfig:
     scalp_split: bool | None = None
     marrow_inside_skull: bool | None = None
     csf_inside_tables: bool | None = None
+    marrow_tables: bool | None = None
     unmodelled_start: Literal["equal", "atlas"] | None = None
 
     def __post_init__(self):
@@ -678,6 +704,9 @@ class SegmentConfig:
                                "`scalp_outside_skull` relabels scalp inside the skull.")
         _check_modality_switch("csf_inside_tables", self.csf_inside_tables, self.modality, "mri",
                                "(T1: a marrow as dark as CSF); on CT the bone is bright.")
+        _check_modality_switch("marrow_tables", self.marrow_tables, self.modality, "mri",
+                               "(T1: compact tables as dark as CSF beside a fat-bright marrow); on CT the bone is "
+                               "bright and `bone_majority` draws its surface.")
         if self.unmodelled_start is not None and self.unmodelled_start not in UNMODELLED_STARTS:
             raise ValueError(
                 f"[segment] `unmodelled_start` must be one of {UNMODELLED_STARTS} (the first EM's skull/scalp "
@@ -721,6 +750,12 @@ class SegmentConfig:
         if self.csf_inside_tables is None:
             return DEFAULT_CSF_INSIDE_TABLES[self.modality]
         return bool(self.csf_inside_tables)
+
+    def marrow_tables_on(self) -> bool:
+        """Whether the tables around a fat-bright marrow are relabelled skull (`marrow_tables`, or the default)."""
+        if self.marrow_tables is None:
+            return DEFAULT_MARROW_TABLES[self.modality]
+        return bool(self.marrow_tables)
 
     def marrow_inside_skull_on(self) -> bool:
         """Whether scalp the skull encloses is given to the skull (`marrow_inside_skull`, or the modality default)."""
@@ -1384,6 +1419,8 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
             (post, res, opts, coords, _, sample), inside = _csf_inside_tables(
                 volume, split[2], None, None, (post, res, opts, coords, pi, sample), cfg)
             summary["csf_inside_tables"]["after_layer_split"] = inside
+    if cfg.marrow_tables_on():
+        post, summary["marrow_tables"] = _marrow_tables(volume, (post, res, opts, coords, pi, sample), cfg)
     if cfg.modality == "ct" and cfg.bone_majority:
         post, info = bone_majority(np.asarray(volume.data), post)
         summary["bone_majority"] = {k: round(v, 1) for k, v in info.items()}
@@ -1747,6 +1784,72 @@ def tables_cut(fit) -> float | None:
     below MARROW_MIN_SHARE of their class's weight are not counted."""
     above = _skull_above_brain(fit)
     return None if above is None or above <= 0 else skull_cut(fit)
+
+
+#: the 6-neighbourhood (face-adjacent voxels)
+_FACE = ndimage.generate_binary_structure(3, 1)
+
+
+def marrow_tables(labels: np.ndarray, y: np.ndarray, cut: float | None, voxel_mm,
+                  reach_mm: float = MARROW_TABLE_MM) -> np.ndarray:
+    """The compact tables around a fat-bright marrow that the EM gave to CSF or the scalp (DEFAULT_MARROW_TABLES'
+    comment): voxels labelled CSF or scalp, no brighter than `cut`, within `reach_mm` (Euclidean distance between
+    voxel centres) of the exposed marrow: skull-labelled voxels brighter than `cut` that touch CSF or scalp across a
+    face, with no skull-labelled table between. Where the tables are labelled skull the marrow is not exposed and
+    nothing moves, however thin they are (a reach from all of the marrow took 1 mm of CSF beyond sharp 1 mm
+    tables, session 33).
+
+    Arguments:
+        labels: (x, y, z) Tissue labels.
+        y: (x, y, z) intensities on the scale of `cut` (the bias-corrected EM data).
+        cut: the tables' upper bound (`tables_cut`); None: no fat-bright marrow, nothing found.
+        voxel_mm: voxel sizes (3,), mm.
+        reach_mm: a table's thickness, mm (> 0).
+    Returns:
+        (x, y, z) boolean.
+    """
+    if not (np.isfinite(reach_mm) and reach_mm > 0):
+        raise ValueError(f"marrow_tables: `reach_mm` must be > 0 (mm), got {reach_mm}.")
+    labels = np.asarray(labels)
+    if cut is None:
+        return np.zeros(labels.shape, bool)
+    outside = (labels == Tissue.CSF) | (labels == Tissue.SCALP)
+    exposed = (labels == Tissue.SKULL) & (y > cut) & ndimage.binary_dilation(outside, _FACE)
+    if not exposed.any():
+        return np.zeros(labels.shape, bool)
+    candidates = outside & (y <= cut)
+    # only the exposed marrow's neighbourhood: a distance transform on its bounding box grown by the reach
+    pad = np.ceil(reach_mm / np.asarray(voxel_mm, np.float64)).astype(int)
+    idx = np.nonzero(exposed)
+    box = tuple(slice(max(int(i.min()) - p, 0), int(i.max()) + p + 1) for i, p in zip(idx, pad))
+    out = np.zeros(labels.shape, bool)
+    near = ndimage.distance_transform_edt(~exposed[box], sampling=voxel_mm) <= reach_mm
+    out[box] = near & candidates[box]
+    return out
+
+
+def _marrow_tables(volume: Volume, fit, cfg: SegmentConfig):
+    """`SegmentConfig.marrow_tables` on the final fit ((posteriors, EMResult, EMOptions, coords[, pi, sample])):
+    the voxels `marrow_tables` finds get posterior one on the skull. Returns (posteriors, summary for the run
+    report)."""
+    post = fit[0]
+    if skipped := _coarser_than_a_table(volume, "the tables are partial volume with the marrow"):
+        return post, dict(voxels=0, skipped=skipped)
+    cut = tables_cut(fit)
+    if cut is None:
+        return post, dict(voxels=0, skipped="the skull class learnt no fat-bright marrow (no Gaussian brighter than "
+                                            "the brain's darkest)")
+    labels = class_argmax(post)
+    found = marrow_tables(labels, corrected_em_data(volume, fit, cfg), cut, voxel_sizes(volume.affine))
+    summary = dict(voxels=int(found.sum()), from_csf=int((found & (labels == Tissue.CSF)).sum()),
+                   from_scalp=int((found & (labels == Tissue.SCALP)).sum()), cut=round(float(cut), 4),
+                   reach_mm=MARROW_TABLE_MM)
+    if found.any():
+        post = np.array(post, copy=True)
+        post[:, found] = 0.0
+        post[Tissue.SKULL, found] = 1.0
+    log.info("segment (%s): tables around the marrow relabelled skull: %s", cfg.modality, summary)
+    return post, summary
 
 
 def bright_skull_outside_tables(labels: np.ndarray, y: np.ndarray, cut: float | None) -> np.ndarray:
