@@ -168,6 +168,20 @@ def test_a_first_segmentation_without_brain_is_a_clear_error():
                      SegmentConfig())
 
 
+def test_brain_outside_the_largest_piece_of_brain_and_csf_is_a_clear_error():
+    """Brain only in a small piece apart from a larger CSF piece: no intracranial space to measure depth from."""
+    from jaxhead.segmentation.segment import _layer_split
+    from jaxhead.volume import Volume
+
+    r, _ = _radius_angle(24, 1.0)
+    lab = np.where(r < 6, Tissue.CSF, np.where(r < 8, Tissue.SKULL, np.where(r < 10, Tissue.SCALP, 0)))
+    lab[0:2, 0:2, 0:2] = Tissue.BRAIN  # a corner piece, apart from the CSF ball
+    post = np.stack([(lab == k).astype(np.float32) for k in range(5)])
+    with pytest.raises(ValueError, match="holds no brain voxel.*layer_split = false"):
+        _layer_split(Volume(lab.astype(np.float64) + 1, np.eye(4)), post, None, None, (post, None, None, None),
+                     SegmentConfig())
+
+
 def test_largest_component_keeps_the_biggest_face_connected_piece():
     m = np.zeros((9, 9, 9), bool)
     m[1:4, 1:4, 1:4] = True  # 27 voxels

@@ -93,6 +93,7 @@ from typing import Literal
 import numpy as np
 from scipy import ndimage as ndi
 
+from ..masks import largest_component
 from ..tissue import TISSUES, Tissue, per_tissue
 from ..volume import LabelMap
 
@@ -397,18 +398,8 @@ def _holes(mask: np.ndarray) -> np.ndarray:
 
 def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
     """(voxels outside the largest face-connected component of `mask`, number of other components)."""
-    out = np.zeros_like(mask)
-    sl = _bbox(mask, 0)
-    if sl is None:
-        return out, 0
-    sub = mask[sl]
-    lab, n = ndi.label(sub, structure=_CROSS)
-    if n <= 1:
-        return out, 0
-    sizes = np.bincount(lab.ravel())
-    sizes[0] = 0
-    out[sl] = sub & (lab != int(np.argmax(sizes)))
-    return out, n - 1
+    largest, n = largest_component(mask)
+    return (mask & ~largest if n else np.zeros_like(mask)), n
 
 
 # ---------------------------------------------------------------------------------------------

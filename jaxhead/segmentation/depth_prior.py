@@ -31,6 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy import ndimage
 
+from ..masks import largest_component as _largest_component
 from ..tissue import Tissue
 
 #: bins of t in [0, 1] for the atlas's p(CSF | t)
@@ -58,14 +59,10 @@ def layer_depth(brain: np.ndarray, scalp: np.ndarray, voxel_mm) -> np.ndarray:
 
 
 def largest_component(mask: np.ndarray) -> np.ndarray:
-    """The largest face-connected (6-neighbourhood) component of a boolean mask (all False where it is empty).
-    The depth's ends are compartments, not every voxel of a label: a few voxels of scalp fat labelled brain
-    (as bright as white matter on T1) put depth 0 in the scalp beside them."""
-    mask = np.asarray(mask, bool)
-    lab, n = ndimage.label(mask)
-    if n <= 1:
-        return mask
-    return lab == int(np.argmax(np.bincount(lab.ravel())[1:])) + 1
+    """The largest face-connected (6-neighbourhood) component of a boolean mask (all False where it is empty;
+    `jaxhead.masks.largest_component`). The depth's ends are compartments, not every voxel of a label: a few
+    voxels of scalp fat labelled brain (as bright as white matter on T1) put depth 0 in the scalp beside them."""
+    return _largest_component(mask)[0]
 
 
 def isotonic_decreasing(values, weights) -> np.ndarray:

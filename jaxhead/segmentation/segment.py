@@ -1907,13 +1907,17 @@ def _layer_split(volume: Volume, priors: np.ndarray, unmodelled, pi, fit, cfg: S
     if given_back is not None:
         labels[given_back] = Tissue.SCALP
     _brain_and_scalp(labels, "layer_split")
-    y = corrected_em_data(volume, fit, cfg)
     vox = voxel_sizes(volume.affine)
     # the depth's ends are compartments: the brain of the intracranial space (brain + CSF's largest component) and
     # the scalp's largest component, not stray labels (fat labelled brain in the scalp, scalp in the brain), which
     # put depth 0 or 1 beside them (session 33: 13,816 and 6,234 voxels on the benchmark's scan; the child's-marrow 1 mm table's rows 2 -> 3 of 4)
     brain = (labels == Tissue.BRAIN) & largest_component((labels == Tissue.BRAIN) | (labels == Tissue.CSF))
+    if not brain.any():
+        raise ValueError("[segment] layer_split: the largest connected piece of brain + CSF the first EM labelled "
+                         "holds no brain voxel, so there is no intracranial space to measure depth from; check "
+                         "the scan and `modality`, or set layer_split = false.")
     t = layer_depth(brain, largest_component(labels == Tissue.SCALP), vox)
+    y = corrected_em_data(volume, fit, cfg)
     band = (labels == Tissue.CSF) | (labels == Tissue.SKULL)
     if not band.any():
         raise ValueError("[segment] layer_split: the first EM labelled no CSF and no skull voxel, so there is no "
