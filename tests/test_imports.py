@@ -18,7 +18,7 @@ ROOT = pathlib.Path(jaxhead.__file__).parent
 #: Floors, bottom first: types and files, then the stages in pipeline order, then runs, then the CLI.
 FLOORS = [
     {"_types", "_files", "_tables", "tissue"},
-    {"volume"},
+    {"volume", "masks"},
     {"phantom"},
     {"segmentation"},
     {"geometry"},
