@@ -21,7 +21,6 @@ atomically; it needs no network.
 from __future__ import annotations
 
 import functools
-
 import logging
 import os
 from pathlib import Path
