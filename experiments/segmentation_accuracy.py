@@ -137,6 +137,8 @@ def run(args) -> list[dict]:
                              seconds=time.perf_counter() - t, nmi=seg.registration["nmi"], **d))
             if "warp_refinement" in seg.registration:  # SegmentConfig.refine_warp
                 rows[-1]["warp_refinement"] = seg.registration["warp_refinement"]
+            if "unmodelled" in seg.registration:  # the shares learnt where the atlas models no bone (and their check)
+                rows[-1]["unmodelled"] = seg.registration["unmodelled"]
             log.info("%s %s noise %g %s (atlas %s): %s (%.0f s)", anat, modality, noise, contrast, atlas.name,
                      {k: round(v, 3) for k, v in d.items()}, rows[-1]["seconds"])
             if getattr(args, "partial", None):  # rows so far, so that an interrupted run leaves them

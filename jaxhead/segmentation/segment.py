@@ -406,8 +406,13 @@ LAYER_SPLIT_WIDTH = 0.1
 #: 0.088-0.148, and the 1 mm MRI 8 % skull Dice goes 0.807 -> 0.919. On CT bone is hundreds of HU above
 #: soft tissue: "atlas" learns 0.132-0.142, "equal" over-estimates (0.172-0.184) and costs skull and CSF
 #: Dice (2 mm minimum skull 0.985 -> 0.973, CSF 0.480 -> 0.425).
-DEFAULT_UNMODELLED_START = {"mri": "equal", "ct": "atlas"}
-UNMODELLED_STARTS = ("equal", "atlas")
+#: "checked" (session 35): "equal"; where the skull share it learns is above the equal start, a second first
+#: EM from it; if that learns a larger share still, the share is running away (the skull class is taking a tissue
+#: the region is mostly made of: under a scanner's blur an adult's fat-bright marrow takes the face's fat, 0.60 ->
+#: 0.88 -> 0.98, truth 0.11), and the first EM from the atlas's placeholder is used instead (`checked_start`;
+#: experiments/results/segmentation_unmodelled_runaway.md).
+DEFAULT_UNMODELLED_START = {"mri": "checked", "ct": "atlas"}
+UNMODELLED_STARTS = ("equal", "atlas", "checked")
 #: Perona-Malik edge threshold in noise sd (k = EDGE_FACTOR * noise_sd) and steps (denoise.py).
 EDGE_FACTOR = 2.0
 DENOISE_STEPS = 5
@@ -562,9 +567,11 @@ class SegmentConfig:
             MARROW_MAX_VOXEL_MM. None: the modality default (DEFAULT_MARROW_TABLES); True with a CT is an error.
         unmodelled_start: where the atlas models no bone (`Atlas.unmodelled`: the mni152 atlas's face
             and neck), the skull and scalp shares the first EM starts from, before their proportions
-            are learnt from the scan (`classify`): "equal" (half each) or "atlas" (the atlas's
-            placeholder soft tissue). None: the modality default (DEFAULT_UNMODELLED_START: "equal"
-            for MRI, "atlas" for CT; why: its comment).
+            are learnt from the scan (`classify`): "equal" (half each), "atlas" (the atlas's
+            placeholder soft tissue) or "checked" ("equal", falling back to "atlas" where the skull
+            share learnt rose above half and a second first EM from it raises it further: a runaway,
+            `checked_start`). None: the modality default (DEFAULT_UNMODELLED_START: "checked" for MRI,
+            "atlas" for CT; why: its comment).
         check_registration: raise when the atlas registration ends implausibly (a flip, a scale
             outside MIN_SCALE..MAX_SCALE, a rotation over MAX_ROTATION_DEG, similarity below
             MIN_NMI): the scan is most likely mis-oriented (see `check_registration`).
@@ -607,7 +614,7 @@ class SegmentConfig:
     marrow_inside_skull: bool | None = None
     csf_inside_tables: bool | None = None
     marrow_tables: bool | None = None
-    unmodelled_start: Literal["equal", "atlas"] | None = None
+    unmodelled_start: Literal["equal", "atlas", "checked"] | None = None
 
     def __post_init__(self):
         if not isinstance(self.modality, str) or self.modality not in ("mri", "ct"):
@@ -1232,9 +1239,9 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
         unmodelled: optional (x, y, z) in [0, 1] on the scan's grid: where the atlas does not model
             bone (`Atlas.unmodelled`, resampled; its priors there are placeholder soft tissue). There
             the proportions of UNMODELLED_CLASSES (skull, scalp) are learnt from the scan: a first EM
-            run with the atlas priors (there, by `cfg.unmodelled_start`, equal shares of those classes
-            or the atlas's placeholder), on the `cfg.first_pass_sample_mm` sample, fits the class intensity
-            models; their likelihoods at
+            run with the atlas priors (there, by `cfg.unmodelled_start`, equal shares of those classes,
+            the atlas's placeholder, or equal shares checked for a runaway), on the
+            `cfg.first_pass_sample_mm` sample, fits the class intensity models; their likelihoods at
             each voxel of that region give the maximum-likelihood proportions
             (`atlas.regional_proportions`; voxel weight = unmodelled x the classes' share of the
             likelihood); a second run, from its own start (not where the first stopped), uses priors
@@ -1246,28 +1253,67 @@ def classify(volume: Volume, priors, cfg: SegmentConfig = SegmentConfig(), unmod
     return _classify_all(volume, priors, cfg, unmodelled)[:4]
 
 
-def _first_pass(volume: Volume, priors, cfg: SegmentConfig, unmodelled, data=None):
+def checked_start(learn, n_classes: int, k: int) -> tuple[object, np.ndarray, dict]:
+    """`unmodelled_start = "checked"`: equal shares, checked for a runaway (DEFAULT_UNMODELLED_START's comment).
+
+    The share of class `k` learnt from equal shares runs away if it rose above its equal start and a second
+    pass from it raises it further: the iteration share -> first EM -> share climbs away from its start towards
+    its upper fixed point. Then the placeholder's fit (`learn(None)`) is used. No second pass where the first
+    learnt no more than the equal share, so there the result and the cost are "equal"'s.
+
+    Arguments:
+        learn: shares (n_classes,) or None (the atlas's placeholder) -> (a fit, the shares it learnt).
+        n_classes: the classes that share the region (len(UNMODELLED_CLASSES)).
+        k: the index among them of the class whose share is checked (the skull).
+    Returns:
+        (the fit used, its learnt shares, figures for the run report: the share learnt from equal shares, from
+        those again where it was run, whether it ran away, and, if it did, the share learnt from the placeholder).
+    """
+    fit, pi = learn(np.full(n_classes, 1.0 / n_classes))
+    check = dict(equal=round(float(pi[k]), 4), runaway=False)
+    if pi[k] > 1.0 / n_classes:
+        _, again = learn(pi)
+        check.update(again=round(float(again[k]), 4), runaway=bool(again[k] > pi[k]))
+    if check["runaway"]:
+        fit, pi = learn(None)
+        check["atlas"] = round(float(pi[k]), 4)
+    return fit, pi, check
+
+
+def _first_pass(volume: Volume, priors, cfg: SegmentConfig, unmodelled, data=None, report: dict | None = None):
     """`classify`'s first EM where the atlas models no bone (`unmodelled`), on the `first_pass_sample_of()` sample,
-    from equal skull/scalp shares there or the atlas's placeholder (`unmodelled_start_of()`). Returns (its
-    EMResult, the shares of UNMODELLED_CLASSES it learnt there). `data`: as `_classify`'s."""
-    first = priors
-    if cfg.unmodelled_start_of() == "equal":
-        first = with_proportions(np.asarray(priors), unmodelled,
-                                 np.full(len(UNMODELLED_CLASSES), 1.0 / len(UNMODELLED_CLASSES)))
-    _, res, _, _, pi, _ = _classify(volume, first, cfg, unmodelled, sample_mm=cfg.first_pass_sample_of(), data=data)
+    from equal skull/scalp shares there, the atlas's placeholder, or "checked" (`unmodelled_start_of()`;
+    DEFAULT_UNMODELLED_START's comment; `checked_start`). Returns (its EMResult, the shares of UNMODELLED_CLASSES
+    it learnt there). `data`: as `_classify`'s. `report`: a dict that gets "checked"'s figures (None: not kept)."""
+    start = cfg.unmodelled_start_of()
+
+    def learn(shares):
+        first = priors if shares is None else with_proportions(np.asarray(priors), unmodelled, shares)
+        _, res, _, _, pi, _ = _classify(volume, first, cfg, unmodelled, sample_mm=cfg.first_pass_sample_of(),
+                                        data=data)
+        return res, pi
+
+    n = len(UNMODELLED_CLASSES)
+    if start == "checked":
+        res, pi, check = checked_start(learn, n, UNMODELLED_CLASSES.index(Tissue.SKULL))
+        log.info("segment (%s): skull share where the atlas models no bone, checked: %s", cfg.modality, check)
+        if report is not None:
+            report.update(check)
+    else:
+        res, pi = learn(None if start == "atlas" else np.full(n, 1.0 / n))
     log.info("segment (%s): %s proportions learnt where the atlas models no bone: %s", cfg.modality,
              [Tissue(c).name.lower() for c in UNMODELLED_CLASSES], np.round(pi, 3).tolist())
     return res, pi
 
 
-def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None):
+def _classify_all(volume: Volume, priors, cfg: SegmentConfig, unmodelled=None, report: dict | None = None):
     """`classify`, also returning the learnt unmodelled-region proportions (None without) and the EM's
     sample: its data, bias coordinates and grid affine (for `_refine_warp`), and the EM's data on the
-    full grid (for the steps after the EM that judge intensities by its Gaussians)."""
+    full grid (for the steps after the EM that judge intensities by its Gaussians). `report`: `_first_pass`'s."""
     if unmodelled is None:
         return _classify(volume, priors, cfg)
     data = _scan_em_data(volume, cfg)
-    _, pi = _first_pass(volume, priors, cfg, unmodelled, data)
+    _, pi = _first_pass(volume, priors, cfg, unmodelled, data, report)
     # The second EM starts from its own start on the new priors, not from where the first stopped: the first
     # only has to learn `pi`, so it may sample more sparsely (`first_pass_sample_mm`). Warm-started, the second
     # EM inherited the first's end point: from the placeholder start its scalp class kept some of the region's
@@ -1386,13 +1432,16 @@ def segment_reported(volume: Volume, atlas: Atlas | None = None,
     if cfg.check_registration:
         check_registration(summary, volume)
     t1 = time.perf_counter()
-    post, res, opts, coords, pi, sample = _classify_all(volume, priors, cfg, unmodelled)
+    first_pass = {}
+    post, res, opts, coords, pi, sample = _classify_all(volume, priors, cfg, unmodelled, first_pass)
     if cfg.refine_rounds() > 0:
         transform, (post, res, opts, coords, pi, sample), summary["warp_refinement"] = _refine_warp(
             volume, atlas, transform, (post, res, opts, coords, pi, sample), cfg)
     if pi is not None:  # the shares the later steps use (re-learnt by the warp refinement where it ran)
         summary["unmodelled"] = {"start": cfg.unmodelled_start_of(), **{
             Tissue(c).name.lower(): round(float(p), 4) for c, p in zip(UNMODELLED_CLASSES, pi)}}
+        if first_pass:  # "checked": the first pass's skull shares (before any warp refinement)
+            summary["unmodelled"]["checked"] = first_pass
     if cfg.depth_prior_on():
         if cfg.refine_rounds() > 0:  # the priors (and unmodelled map) of the refined warp
             priors = resample(atlas.priors, atlas.affine, transform, volume.shape, volume.affine, dtype=_dtype(cfg))
