@@ -19,7 +19,7 @@ from jaxhead.segmentation import (
     segment_reported,
 )
 from jaxhead.segmentation.atlas import Atlas, regional_proportions, with_proportions
-from jaxhead.segmentation.segment import unmodelled_on_grid
+from jaxhead.segmentation.segment import checked_start, unmodelled_on_grid
 from jaxhead.segmentation.templates import (
     UNMODELLED_CLASSES,
     ants_anatomy,
@@ -296,7 +296,7 @@ def test_checked_start_falls_back_only_where_the_share_runs_away(case):
          "up_from_below": lambda s: 0.1 - (s - 0.095) * 0.005 / 0.405,  # 0.5 -> 0.095 -> 0.1
          "down_from_above": lambda s: 1.1 - s}[case]
     learn, calls = _share_map(f)
-    fit, pi, check = segment_module().checked_start(learn, 2, 0)
+    fit, pi, check = checked_start(learn, 2, 0)
     first, again = f(0.5), f(f(0.5))
     assert check["equal"] == pytest.approx(first, abs=1e-4) and pi.sum() == pytest.approx(1.0)
     assert check["runaway"] is (case == "runaway")
@@ -314,13 +314,9 @@ def test_checked_start_falls_back_only_where_the_share_runs_away(case):
         assert again > first  # a second pass would have risen: the equal start's bound is what keeps it
 
 
-def segment_module():
-    return importlib.import_module("jaxhead.segmentation.segment")
-
-
 def test_checked_start_segments_as_equal_where_nothing_runs_away(cache):
-    """The whole chain: "checked" runs one first EM more and reports its shares; where the share does not run away
-    (the MNI152 head at 4 mm, mni152 atlas) the labels are those of "equal", voxel for voxel."""
+    """The whole chain: "checked" reports its shares; where the share learnt from equal shares is at most half (the
+    MNI152 head at 4 mm, mni152 atlas) it runs no second pass and the labels are those of "equal", voxel for voxel."""
     vol = render(mni152_anatomy().resampled(VOX), "mri", noise=0.05, bias=0.2, seed=2)
     atlas = default_atlas("mri", voxel_mm=VOX)
     got = {s: segment_reported(vol, atlas, SegmentConfig(modality="mri", atlas_voxel_mm=VOX, unmodelled_start=s))
