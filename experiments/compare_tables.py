@@ -41,6 +41,21 @@ def load(path: str) -> dict[tuple, dict]:
     return out
 
 
+def row_minima(run: dict[tuple, dict], keys=None) -> dict[tuple, tuple[list[float], int]]:
+    """{row (anatomy, atlas, modality, noise): (its scans' minimum Dice per tissue, the number of scans)}, the rows in
+    the order their first scan appears; `keys`: only these scans (default: every scan of `run`)."""
+    keys = list(run) if keys is None else list(keys)
+    rows: dict[tuple, list] = {}
+    for k in keys:
+        rows.setdefault(k[:4], []).append(k)
+    return {r: ([min(run[k][t] for k in ks) for t in TISSUES], len(ks)) for r, ks in rows.items()}
+
+
+def meets(minima, modality: str) -> bool:
+    """Whether a row's minimum Dice per tissue meets issue 11's bars for `modality` ("mri" or "ct")."""
+    return all(m >= bar for m, bar in zip(minima, BARS[modality]))
+
+
 def _fmt(d) -> str:
     return " / ".join(f"{x:.3f}" for x in d)
 
@@ -60,21 +75,17 @@ def compare(old: dict[tuple, dict], new: dict[tuple, dict], moved: float = 0.005
         lines.append(f"| {k[0]} ({k[1]}) | {k[2]} | {k[3]:g} | {k[4]} | {_fmt(a)} | {_fmt(b)} | "
                      + " / ".join(f"{d:+.3f}" for d in diff) + f" ({big:.3f}) |")
     lines += ["", "| row | old minimum | meets | new minimum | meets |", "|---|---|---|---|---|"]
-    rows = []
-    for k in both:
-        r = k[:4]
-        if r not in rows:
-            rows.append(r)
+    minima = {name: row_minima(run, both) for name, run in (("old", old), ("new", new))}
     met = {"old": 0, "new": 0}
-    for r in rows:
-        keys = [k for k in both if k[:4] == r]
+    for r, (_, n_scans) in minima["new"].items():
         cells = []
-        for name, run in (("old", old), ("new", new)):
-            mins = [min(run[k][t] for k in keys) for t in TISSUES]
-            ok = all(m >= bar for m, bar in zip(mins, BARS[r[2]]))
+        for name in ("old", "new"):
+            mins = minima[name][r][0]
+            ok = meets(mins, r[2])
             met[name] += ok
             cells += [_fmt(mins), "yes" if ok else "no"]
-        lines.append(f"| {r[0]} ({r[1]}) {r[2]} {r[3]:g} ({len(keys)} scans) | " + " | ".join(cells) + " |")
+        lines.append(f"| {r[0]} ({r[1]}) {r[2]} {r[3]:g} ({n_scans} scans) | " + " | ".join(cells) + " |")
+    rows = minima["new"]
     only = sorted(set(old) ^ set(new), key=str)
     lines += ["", f"{len(both)} scans compared; {n_moved} moved by more than {moved:g} in some tissue; "
               f"largest change {worst[0]:+.3f} ({worst[1]}); rows meeting every bar: {met['old']} -> {met['new']} "
@@ -82,6 +93,14 @@ def compare(old: dict[tuple, dict], new: dict[tuple, dict], moved: float = 0.005
     if only:
         lines.append("In one run only (not compared): " + "; ".join(map(str, only)) + ".")
     return "\n".join(lines) + "\n"
+
+
+def write_text_atomic(path: str, text: str) -> None:
+    """Write `text` to `path` through a temporary file beside it, so a reader never sees half a page."""
+    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
 
 
 def main(argv=None) -> None:
@@ -94,10 +113,7 @@ def main(argv=None) -> None:
     text = compare(load(args.old), load(args.new), args.moved)
     sys.stdout.write(text)
     if args.out:
-        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(args.out)), suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, args.out)
+        write_text_atomic(args.out, text)
 
 
 if __name__ == "__main__":
