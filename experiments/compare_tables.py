@@ -85,22 +85,26 @@ def compare(old: dict[tuple, dict], new: dict[tuple, dict], moved: float = 0.005
             met[name] += ok
             cells += [_fmt(mins), "yes" if ok else "no"]
         lines.append(f"| {r[0]} ({r[1]}) {r[2]} {r[3]:g} ({n_scans} scans) | " + " | ".join(cells) + " |")
-    rows = minima["new"]
     only = sorted(set(old) ^ set(new), key=str)
     lines += ["", f"{len(both)} scans compared; {n_moved} moved by more than {moved:g} in some tissue; "
               f"largest change {worst[0]:+.3f} ({worst[1]}); rows meeting every bar: {met['old']} -> {met['new']} "
-              f"of {len(rows)}."]
+              f"of {len(minima['new'])}."]
     if only:
         lines.append("In one run only (not compared): " + "; ".join(map(str, only)) + ".")
     return "\n".join(lines) + "\n"
 
 
 def write_text_atomic(path: str, text: str) -> None:
-    """Write `text` to `path` through a temporary file beside it, so a reader never sees half a page."""
+    """Write `text` to `path` through a temporary file beside it, so a reader never sees half a page (the temporary
+    file is removed if the write fails)."""
     fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
 
 
 def main(argv=None) -> None:

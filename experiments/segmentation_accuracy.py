@@ -28,7 +28,6 @@ import json
 import logging
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -48,9 +47,11 @@ from jaxhead.segmentation.templates import (  # noqa: E402
     with_diploe)
 from jaxhead.tissue import TISSUES  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from compare_tables import meets, write_text_atomic as _write_atomic  # noqa: E402  (issue 11's bars)
+
 log = logging.getLogger("segmentation_accuracy")
 HEADS = shipped_heads_folder()  # ../shared/data/heads beside the checkout, or $JAXHEAD_HEADS
-BARS = {"mri": (0.93, 0.75, 0.85, 0.93), "ct": (0.93, 0.65, 0.90, 0.93)}
 #: noise levels: MRI Rician sd as a fraction of white matter; CT HU (phantom: its own units, see make_head)
 NOISE = {"mri": (0.03, 0.08), "ct": (5.0, 20.0)}
 PHANTOM_NOISE = {"mri": (0.03, 0.06), "ct": (10.0, 20.0)}
@@ -159,22 +160,11 @@ def table(rows: list[dict]) -> str:
         sel = [r for r in rows if (r["anatomy"], r["atlas"], r["modality"], r["noise"]) == k]
         means = [np.mean([r[n] for r in sel]) for n in names]
         mins = [np.min([r[n] for r in sel]) for n in names]
-        ok = all(m >= b for m, b in zip(mins, BARS[k[2]]))
+        ok = meets(mins, k[2])
         cells = [f"{m:.3f} (min {lo:.3f})" for m, lo in zip(means, mins)]
         out.append(f"| {k[0]} ({k[1]}) | {k[2]} | {k[3]:g} | {len(sel)} | " + " | ".join(cells) +
                    f" | {'yes' if ok else 'no'} |")
     return "\n".join(out)
-
-
-def _write_atomic(path: str, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
 
 
 def main(argv=None):
